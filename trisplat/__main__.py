@@ -1,0 +1,5 @@
+import sys
+
+from trisplat.cli import main
+
+sys.exit(main())

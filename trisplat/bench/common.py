@@ -1,0 +1,104 @@
+"""Shared benchmark plumbing: machine facts, timing medians, peak memory, JSON + markdown output."""
+from __future__ import annotations
+
+import json
+import os
+import platform
+import resource
+import statistics
+import subprocess
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+
+def machine_info() -> dict:
+    """Cores, CPU model, thread counts, versions and the git commit, recorded with every result."""
+    import numba
+    import numpy
+    import torch
+
+    cpu = platform.processor() or ""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    try:
+        commit = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=Path(__file__).parent
+        ).stdout.strip()
+    except OSError:
+        commit = ""
+    return {
+        "cpu": cpu,
+        "cores": os.cpu_count(),
+        "numba_threads": numba.get_num_threads(),
+        "torch_threads": torch.get_num_threads(),
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "numba": numba.__version__,
+        "numpy": numpy.__version__,
+        "commit": commit or "unknown",
+        "date": time.strftime("%Y-%m-%d %H:%M"),
+    }
+
+
+def median_ms(fn: Callable[[], object], repeats: int = 5, warmup: int = 1) -> float:
+    """Median wall time of fn() in milliseconds after `warmup` untimed calls."""
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append((time.perf_counter() - t0) * 1e3)
+    return statistics.median(times)
+
+
+def peak_rss_mb() -> float:
+    """Peak resident set size of this process so far, MiB (Linux reports KiB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+@dataclass
+class BenchTable:
+    """Rows of one benchmark; written as JSON (with machine facts) and as a markdown table."""
+
+    name: str
+    columns: list[str]
+    rows: list[list] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+
+    def add(self, *values) -> None:
+        if len(values) != len(self.columns):
+            raise ValueError(f"row has {len(values)} values for {len(self.columns)} columns")
+        self.rows.append(list(values))
+
+    def markdown(self) -> str:
+        def fmt(v):
+            if isinstance(v, float):
+                return f"{v:.3g}" if abs(v) < 1e5 else f"{v:.3e}"
+            return "-" if v is None else str(v)
+
+        out = ["| " + " | ".join(self.columns) + " |", "|" + "---|" * len(self.columns)]
+        out += ["| " + " | ".join(fmt(v) for v in row) + " |" for row in self.rows]
+        out += [f"\n{n}" for n in self.notes]
+        return "\n".join(out)
+
+    def write(self, out_dir: Path, command: str) -> Path:
+        out_dir = Path(out_dir)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        info = machine_info()
+        payload = {"name": self.name, "command": command, "machine": info, "columns": self.columns,
+                   "rows": self.rows, "notes": self.notes}
+        (out_dir / f"{self.name}.json").write_text(json.dumps(payload, indent=2))
+        header = (f"### {self.name}\n\n`{command}` on {info['cpu']} ({info['cores']} cores, numba threads "
+                  f"{info['numba_threads']}, torch threads {info['torch_threads']}), commit {info['commit']}, "
+                  f"{info['date']}\n\n")
+        md = out_dir / f"{self.name}.md"
+        md.write_text(header + self.markdown() + "\n")
+        return md

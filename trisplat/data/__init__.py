@@ -1,0 +1,1 @@
+"""Capture loaders: load_dataset(path) -> SceneData, format detected from the folder."""

@@ -1,0 +1,48 @@
+"""SceneData: the typed hand-off from a capture on disk to initialisation and training."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from trisplat.cameras import Camera
+
+
+@dataclass
+class SceneData:
+    """A posed capture, in a normalised world frame.
+
+    cameras: every camera of the capture (train and test), OpenCV axes, already undistorted and downscaled.
+    train_indices / test_indices: int64 indices into `cameras`.
+    points / point_colors: float32 [P,3] sparse points (normalised frame) and their RGB in [0,1], or None.
+    normalization: float64 [4,4] similarity with x_normalised = normalization @ x_capture (homogeneous);
+        exports apply its inverse so meshes land in the capture's original frame and units.
+    background: RGB in [0,1] that transparent ground-truth pixels were composited over.
+    format: 'colmap' | 'blender' | 'ngp' | 'rgbd' (what the loader detected).
+    warnings: things the loader fixed or skipped, in words a person can read.
+    """
+
+    cameras: list[Camera]
+    train_indices: np.ndarray
+    test_indices: np.ndarray
+    points: np.ndarray | None = None
+    point_colors: np.ndarray | None = None
+    normalization: np.ndarray = field(default_factory=lambda: np.eye(4))
+    background: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    format: str = ""
+    root: Path | None = None
+    warnings: list[str] = field(default_factory=list)
+    image_loader: object | None = field(default=None, repr=False)
+
+    def load_image(self, index: int) -> np.ndarray:
+        """Ground-truth image of camera `index`: float32 [H,W,3] in [0,1], composited over `background`."""
+        if self.image_loader is None:
+            raise RuntimeError("this SceneData has no image loader")
+        return self.image_loader(index)
+
+    @property
+    def scene_radius(self) -> float:
+        """Radius of the camera centres around their mean (normalised frame), a scale for thresholds."""
+        c = np.stack([cam.center for cam in self.cameras])
+        return float(np.linalg.norm(c - c.mean(0), axis=1).max()) or 1.0

@@ -1,0 +1,1 @@
+"""Differentiable triangle splatting: rasterize(...) -> RenderOutput (soft) and rasterize_hard(...) (z-buffer)."""

@@ -1,0 +1,54 @@
+"""RenderOutput and RenderOptions: the typed hand-off between the rasterizer and everything that uses images."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+
+@dataclass(frozen=True)
+class RenderOptions:
+    """Settings of one rasterize() call. Every threshold has a unit.
+
+    near: near-plane distance (view-space z, scene units); faces with any vertex nearer are culled whole.
+    far: far-plane distance; faces entirely beyond are culled.
+    supersample: render at s x resolution and area-downsample (s in 1, 2, 4).
+    tile_size: tile edge in pixels (the per-tile depth sort granularity).
+    opacity_mode: 'min' (Triangle Splatting+: the arg-min vertex gets the gradient) or 'mean' (SLAM variant).
+    perspective_correct: interpolate colours with perspective-correct barycentrics instead of screen-space ones.
+    alpha_max: cap on per-pixel alpha (0.99). alpha_min: skip below (1/255). transmittance_min: early stop (1e-4).
+    backend: 'numba' (CPU kernels) or 'reference' (dense PyTorch, the spec in code; slow, for tests).
+    """
+
+    near: float = 0.01
+    far: float = 1e10
+    supersample: int = 1
+    tile_size: int = 16
+    opacity_mode: str = "min"
+    perspective_correct: bool = False
+    alpha_max: float = 0.99
+    alpha_min: float = 1.0 / 255.0
+    transmittance_min: float = 1e-4
+    backend: str = "numba"
+
+
+@dataclass
+class RenderOutput:
+    """What one view (or a batch of B views, with a leading B axis) renders to.
+
+    rgb [H,W,3], alpha [H,W], depth [H,W] (expected view depth, sum of w_n z_n; divide by alpha for the
+    surface depth), normal [H,W,3] (composited camera-facing unit face normals, camera frame),
+    max_weight [F] (per face, the largest blending weight a*T over all pixels), face_id [H,W] int64 (face where the
+    accumulated weight first passes 0.5, -1 if none), and counters: pairs_evaluated (pixel/face pairs the
+    kernel evaluated), faces_visible (faces that survived culling).
+    rgb, alpha, depth and normal are differentiable w.r.t. positions, colours/SH and opacities.
+    """
+
+    rgb: torch.Tensor
+    alpha: torch.Tensor
+    depth: torch.Tensor
+    normal: torch.Tensor
+    max_weight: torch.Tensor
+    face_id: torch.Tensor
+    pairs_evaluated: int = 0
+    faces_visible: int = 0
