@@ -1,1 +1,22 @@
-"""synth"""
+"""Synthetic scenes with known truth: procedural meshes, orbit cameras, an independent ray-cast renderer, Blender-format writer."""
+from trisplat.synth.blender import write_blender_scene
+from trisplat.synth.orbit import look_at, orbit_cameras
+from trisplat.synth.raycast import RayCastView, Shading, raycast_view, render_face_ids, render_views
+from trisplat.synth.scenes import DEMO_SHADING, demo_mesh, spot_mesh, two_object_mesh
+from trisplat.synth.surface import surface_colors
+
+__all__ = [
+    "DEMO_SHADING",
+    "RayCastView",
+    "Shading",
+    "demo_mesh",
+    "look_at",
+    "orbit_cameras",
+    "raycast_view",
+    "render_face_ids",
+    "render_views",
+    "spot_mesh",
+    "surface_colors",
+    "two_object_mesh",
+    "write_blender_scene",
+]
