@@ -1,0 +1,126 @@
+"""Topology edits keep vertex rows, face rows, Adam moments and statistics aligned."""
+import torch
+
+from trisplat.scene.model import TriangleScene
+from trisplat.strategy import ops
+from trisplat.strategy.densify import densify
+from trisplat.strategy.opacity import raise_floor, resolve_logits
+from trisplat.strategy.prune import prune
+
+
+def _grid_scene(n=4, sh_degree=1, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    xs, ys = torch.meshgrid(torch.arange(n + 1.0), torch.arange(n + 1.0), indexing="ij")
+    pos = torch.stack([xs.flatten(), ys.flatten(), torch.zeros((n + 1) ** 2)], 1)
+    faces = []
+    for i in range(n):
+        for j in range(n):
+            a, b, c, d = i * (n + 1) + j, (i + 1) * (n + 1) + j, (i + 1) * (n + 1) + j + 1, i * (n + 1) + j + 1
+            faces += [[a, b, c], [a, c, d]]
+    scene = TriangleScene.from_rgb(pos, torch.tensor(faces), torch.rand(pos.shape[0], 3, generator=g), 0.5, sh_degree)
+    scene.sh[:, 1:] = torch.randn(scene.sh[:, 1:].shape, generator=g)
+    return scene
+
+
+def _trainable_with_moments(scene):
+    ts = ops.make_trainable(scene, {n: 0.0 for n in ops.VERTEX_PARAMS})  # lr 0: moments move, values do not
+    # one Adam step with a gradient equal to a per-row signature, so each row's moments identify the row
+    for name, p in ts.params.items():
+        p.grad = torch.ones_like(p) * (p.detach() if name == "positions" else 1.0)
+    sig = ts.params["positions"].detach()[:, 0] * 100 + ts.params["positions"].detach()[:, 1]
+    ts.params["opacity_logit"].grad = sig.clone()
+    ts.optimizer.step()
+    return ts
+
+
+def _moment(ts, name, key="exp_avg"):
+    return ts.optimizer.state[ts.params[name]][key]
+
+
+def _assert_aligned(ts):
+    """exp_avg of opacity_logit was set from the row's position signature: it must still match its row."""
+    pos = ts.params["positions"].detach()
+    sig = pos[:, 0] * 100 + pos[:, 1]
+    m = _moment(ts, "opacity_logit")
+    old_rows = m != 0  # new (appended) rows start with zero moments
+    torch.testing.assert_close(m[old_rows], 0.1 * sig[old_rows])  # Adam: exp_avg = (1 - beta1) * grad
+    for name in ops.VERTEX_PARAMS:
+        assert _moment(ts, name).shape == ts.params[name].shape
+        assert ts.optimizer.param_groups[ops.VERTEX_PARAMS.index(name)]["params"][0] is ts.params[name]
+    for v in ts.face_stats.values():
+        assert v.shape == (ts.num_faces,)
+    assert int(ts.faces.max()) < ts.num_vertices
+
+
+def test_index_vertices_keeps_moments_with_rows():
+    ts = _trainable_with_moments(_grid_scene())
+    ops.keep_faces(ts, torch.arange(ts.num_faces) % 3 != 0)
+    removed = ops.remove_orphan_vertices(ts)
+    _assert_aligned(ts)
+    assert removed >= 0
+    # a permutation too
+    perm = torch.randperm(ts.num_vertices, generator=torch.Generator().manual_seed(1))
+    before = ts.params["positions"].detach()[ts.faces].clone()
+    ops.index_vertices(ts, perm)
+    _assert_aligned(ts)
+    torch.testing.assert_close(ts.params["positions"].detach()[ts.faces], before)
+
+
+def test_subdivide_shares_midpoints_and_averages():
+    ts = _trainable_with_moments(_grid_scene(n=1))  # two triangles sharing the diagonal
+    ts.face_stats["max_weight"][:] = torch.tensor([0.3, 0.7])
+    V0 = ts.num_vertices
+    added = ops.subdivide_faces(ts, torch.tensor([0, 1]))
+    assert added == 5  # 3 + 3 edges, the shared diagonal counted once
+    assert ts.num_faces == 8 and ts.num_vertices == V0 + 5
+    _assert_aligned(ts)
+    pos = ts.params["positions"].detach()
+    # total area is preserved and every new vertex is the midpoint of two original ones
+    p = pos[ts.faces]
+    area = 0.5 * torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]).norm(dim=1).sum()
+    torch.testing.assert_close(area, torch.tensor(1.0))
+    orig = pos[:V0]
+    mids = (orig[:, None] + orig[None]) / 2
+    for v in pos[V0:]:
+        assert ((mids - v).norm(dim=-1) < 1e-6).any()
+    # children keep their parent's statistics; winding (normal direction) preserved
+    torch.testing.assert_close(ts.face_stats["max_weight"].sort().values, torch.tensor([0.3] * 4 + [0.7] * 4))
+    n = torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    assert (n[:, 2] * n[0, 2] > 0).all()
+
+
+def test_prune_then_densify_stay_aligned_and_never_crash():
+    ts = _trainable_with_moments(_grid_scene(n=6))
+    ts.face_stats["max_weight"][:] = torch.linspace(0, 1, ts.num_faces)
+    r = prune(ts, threshold=0.3)
+    assert r.faces_removed == int((torch.linspace(0, 1, r.faces_before) <= 0.3).sum())
+    _assert_aligned(ts)
+    g = torch.Generator().manual_seed(0)
+    d = densify(ts, growth=1.5, max_vertices=10_000, n_largest=2, min_face_px=0.0, generator=g)
+    assert d.vertices_added > 0
+    _assert_aligned(ts)
+    # no blended faces at all: the reference crashes here ("cannot sample n_sample <= 0"); we subdivide the largest
+    ts.reset_face_stats()
+    d = densify(ts, growth=1.5, max_vertices=10_000, n_largest=3, min_face_px=0.0, generator=g)
+    assert d.faces_selected == 3 and "largest" in d.reason
+    # vertex cap reached: nothing happens
+    d = densify(ts, growth=1.5, max_vertices=ts.num_vertices, n_largest=3, min_face_px=0.0, generator=g)
+    assert d.faces_selected == 0 and d.vertices_added == 0
+    # pruning everything keeps at least one face
+    prune(ts, threshold=2.0)
+    assert ts.num_faces >= 1
+    _assert_aligned(ts)
+
+
+def test_floor_raise_keeps_opacities():
+    logit = torch.linspace(-4, 4, 50)
+    new = resolve_logits(logit, 0.1, 0.3)
+    o_old = 0.1 + 0.9 * torch.sigmoid(logit)
+    o_new = 0.3 + 0.7 * torch.sigmoid(new)
+    above = o_old > 0.3 + 1e-4
+    torch.testing.assert_close(o_new[above], o_old[above], atol=1e-5, rtol=0)
+    assert (o_new[~above] >= 0.3).all()
+    ts = _trainable_with_moments(_grid_scene())
+    before = ts.opacities().detach().clone()
+    raise_floor(ts, 0.2)
+    torch.testing.assert_close(ts.opacities().detach()[before > 0.21], before[before > 0.21], atol=1e-5, rtol=0)

@@ -1,0 +1,67 @@
+"""`trisplat render RUN --split test --out DIR`: one PNG per image of the split, named after the source image."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import torch
+import tyro
+from tqdm import tqdm
+
+
+@dataclass
+class RenderArgs:
+    """Render a trained run's cameras (hard, opaque mesh by default) so anyone can score them with their tools."""
+
+    run: tyro.conf.Positional[Path]
+    out: Path
+    """Output folder for the PNGs (existing files are not overwritten without --force)."""
+    split: Literal["train", "test", "all"] = "test"
+    mode: Literal["hard", "soft"] = "hard"
+    """hard: z-buffer render of the final mesh; soft: the splatting renderer at the final sigma."""
+    force: bool = False
+
+
+def render_split(args: RenderArgs) -> list[Path]:
+    from trisplat.render import rasterize
+    from trisplat.run import open_run
+    from trisplat.train.outputs import render_hard_view, to_png
+
+    run = open_run(args.run)
+    scene, _ = run.load_model()
+    data = run.load_scene_data()
+    bg = tuple(run.config.get("background", (1.0, 1.0, 1.0)))
+    idx = {"train": data.train_indices, "test": data.test_indices,
+           "all": range(len(data.cameras))}[args.split]
+    args.out.mkdir(parents=True, exist_ok=True)
+    written = []
+    for i in tqdm(list(idx), desc=f"render {args.split}"):
+        cam = data.cameras[int(i)]
+        stem = Path(cam.image_path).stem if cam.image_path else f"view_{int(i):04d}"
+        path = args.out / f"{stem}.png"
+        if path.exists() and not args.force:
+            raise FileExistsError(f"{path} exists; pass --force to overwrite")
+        with torch.no_grad():
+            if args.mode == "hard":
+                rgb = render_hard_view(scene, cam, bg)
+            else:
+                rgb = rasterize(scene.positions, scene.faces, scene.sh, scene.opacities(),
+                                float(run.config.get("sigma_end", 1e-4)),
+                                torch.as_tensor(cam.world_to_camera, dtype=torch.float32),
+                                torch.as_tensor(cam.K, dtype=torch.float32), cam.width, cam.height,
+                                background=torch.tensor(bg, dtype=torch.float32)).rgb
+        to_png(rgb, path)
+        written.append(path)
+    return written
+
+
+def main(argv: list[str]) -> int:
+    args = tyro.cli(RenderArgs, args=argv, description=RenderArgs.__doc__)
+    try:
+        paths = render_split(args)
+    except FileExistsError as exc:
+        print(f"trisplat render: {exc}")
+        return 1
+    print(f"wrote {len(paths)} images to {args.out}")
+    return 0

@@ -1,0 +1,102 @@
+"""`trisplat train DATA --out RUN`: optimise triangles on a capture, with checkpoints, resume and exports."""
+from __future__ import annotations
+
+import dataclasses
+import shutil
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import tyro
+
+from trisplat import run as layout
+from trisplat.train.config import PRESETS, TrainConfig, make_config
+
+
+@dataclass
+class TrainArgs:
+    """Train a scene: photos (or a generated scene) -> an opaque triangle mesh in OUT."""
+
+    data: tyro.conf.Positional[Path]
+    """Capture folder (COLMAP, Blender/NeRF, instant-ngp transforms.json or RGB-D)."""
+    out: Path
+    """Run directory (created; an existing finished run is never overwritten without --force)."""
+    preset: Literal[tuple(PRESETS)] = "default"  # type: ignore[valid-type]
+    """fast (a few minutes on a laptop CPU), default, full (the paper's 30k steps), meshsplatting."""
+    minutes: float | None = None
+    """Fit the whole schedule into this many minutes of wall time."""
+    steps: int | None = None
+    """Override the preset's step count."""
+    downscale: int | None = None
+    """Image downscale factor (1, 2, 4, 8)."""
+    max_vertices: int | None = None
+    """Densification cap on the vertex count."""
+    sh_degree: int | None = None
+    """Maximum SH degree (0-3)."""
+    init: Literal["auto", "delaunay", "soup", "random"] | None = None
+    """Initial triangles."""
+    seed: int | None = None
+    final_max_weight_pass: bool | None = None
+    """Drop faces with max blending weight <= 0.5 over the training views at the end."""
+    resume: bool = False
+    """Continue a run from its last checkpoint."""
+    force: bool = False
+    """Start over in a directory that holds a run (the old run is moved aside, never deleted)."""
+    quiet: bool = False
+
+
+def prepare_run_dir(out: Path, resume: bool, force: bool) -> None:
+    """Refuse to clobber a run; with --force move the old one aside (nothing the user had is lost)."""
+    if resume:
+        if not (out / layout.CHECKPOINT).exists():
+            raise FileNotFoundError(f"{out}: nothing to resume (no {layout.CHECKPOINT})")
+        return
+    if out.exists() and any(out.iterdir()):
+        state = layout.open_run(out).state if (out / layout.CONFIG).exists() else {}
+        if not force:
+            what = "a finished run" if state.get("finished") else "an unfinished run (use --resume)" if state \
+                else "files"
+            raise FileExistsError(f"{out} already holds {what}; pass --force to start over (it is moved aside)")
+        backup = out.with_name(f"{out.name}.old-{time.strftime('%Y%m%d-%H%M%S')}")
+        shutil.move(str(out), str(backup))
+        print(f"moved the previous contents of {out} to {backup}", file=sys.stderr)
+
+
+def run_training(args: TrainArgs):
+    from trisplat.data import load_dataset
+    from trisplat.train.trainer import Trainer
+
+    out = args.out
+    prepare_run_dir(out, args.resume, args.force)
+    if args.resume:
+        run = layout.open_run(out)
+        cfg = TrainConfig.from_dict({k: v for k, v in run.config.items() if k not in ("data", "data_options")})
+        data_options = run.config.get("data_options", {})
+        data_path = run.config["data"]
+    else:
+        overrides = {f.name: getattr(args, f.name) for f in dataclasses.fields(args)
+                     if f.name in {g.name for g in dataclasses.fields(TrainConfig)}}
+        cfg = make_config(args.preset, **overrides)
+        data_options = {"downscale": cfg.downscale, "background": list(cfg.background), "test_every": cfg.test_every}
+        data_path = str(args.data.resolve())
+    data = load_dataset(data_path, **data_options)
+    trainer = Trainer(cfg, data, out, resume=args.resume, show_progress=not args.quiet,
+                      data_options=data_options, data_path=data_path)
+    return trainer.train()
+
+
+def main(argv: list[str]) -> int:
+    args = tyro.cli(TrainArgs, args=argv, description=TrainArgs.__doc__)
+    try:
+        result = run_training(args)
+    except FileExistsError as exc:
+        print(f"trisplat train: {exc}", file=sys.stderr)
+        return 1
+    m = result.metrics
+    if m:
+        lp = f", LPIPS {m['lpips']:.3f}" if m.get("lpips") is not None else ""
+        print(f"done in {result.wall_s / 60:.1f} min: test PSNR {m['psnr']:.2f} dB (hard), SSIM {m['ssim']:.3f}{lp}, "
+              f"{m['faces']} faces, {m['vertices']} vertices -> {result.run_dir}")
+    return 0

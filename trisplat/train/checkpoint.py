@@ -1,0 +1,83 @@
+"""Checkpoints: atomic save (temporary file, then rename) and exact resume of parameters, Adam state and RNG."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from trisplat.scene.model import TriangleScene
+from trisplat.strategy import ops
+
+
+def atomic_torch_save(obj, path: Path) -> None:
+    """Write to path.tmp, fsync, then rename: a kill or full disk never corrupts the previous file."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as f:
+        torch.save(obj, f)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def checkpoint_state(ts: ops.TrainableScene, step: int, total_steps: int, generator: torch.Generator,
+                     extra: dict) -> dict:
+    """Everything needed to continue exactly: parameters with their Adam moments, faces, statistics, RNG."""
+    opt_state = {}
+    for group in ts.optimizer.param_groups:
+        p = group["params"][0]
+        opt_state[group["name"]] = {"lr": group["lr"], "state": {k: (v.clone() if torch.is_tensor(v) else v)
+                                                                 for k, v in ts.optimizer.state.get(p, {}).items()}}
+    return {
+        "step": step,
+        "total_steps": total_steps,
+        "params": {k: v.detach().clone() for k, v in ts.params.items()},
+        "optimizer": opt_state,
+        "faces": ts.faces.clone(),
+        "face_stats": {k: v.clone() for k, v in ts.face_stats.items()},
+        "opacity_floor": ts.opacity_floor,
+        "generator": generator.get_state(),
+        "extra": extra,
+    }
+
+
+def restore_trainable(ckpt: dict) -> ops.TrainableScene:
+    """Rebuild the TrainableScene (parameters, Adam state, faces, statistics) saved by checkpoint_state."""
+    params = {k: torch.nn.Parameter(v.clone()) for k, v in ckpt["params"].items()}
+    groups = [{"params": [params[n]], "lr": ckpt["optimizer"][n]["lr"], "name": n} for n in ops.VERTEX_PARAMS]
+    opt = torch.optim.Adam(groups, eps=1e-15)
+    for n in ops.VERTEX_PARAMS:
+        st = ckpt["optimizer"][n]["state"]
+        if st:
+            opt.state[params[n]] = {k: (v.clone() if torch.is_tensor(v) else v) for k, v in st.items()}
+    return ops.TrainableScene(params=params, optimizer=opt, faces=ckpt["faces"].clone(),
+                              opacity_floor=float(ckpt["opacity_floor"]),
+                              face_stats={k: v.clone() for k, v in ckpt["face_stats"].items()})
+
+
+def load_checkpoint(path: Path) -> dict:
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no checkpoint to resume from")
+    try:
+        return torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as exc:  # noqa: BLE001 - any unpickling failure means a corrupt file
+        raise ValueError(f"{path}: unreadable checkpoint ({exc})") from exc
+
+
+def load_scene_from_run(run) -> tuple[TriangleScene, np.ndarray]:
+    """A run's model in the normalised frame and its normalisation [4,4]: model.ply when training finished,
+    otherwise the last checkpoint."""
+    from trisplat import run as run_layout
+
+    model = run.path / run_layout.MODEL
+    if model.exists():
+        from trisplat.io import load_model_ply
+
+        return load_model_ply(model)
+    ckpt = load_checkpoint(run.path / run_layout.CHECKPOINT)
+    ts = restore_trainable(ckpt)
+    return ts.to_scene(), np.asarray(ckpt["extra"]["normalization"], dtype=np.float64)

@@ -1,0 +1,139 @@
+"""TrainConfig: every knob of the soft-to-hard optimisation, with named presets (fast, default, full, meshsplatting)."""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+
+PAPER_STEPS = 30_000  # the Triangle Splatting+ schedule is specified for 30k iterations; we scale it by progress
+
+
+@dataclass
+class TrainConfig:
+    """Soft-to-hard triangle splatting (Triangle Splatting+ defaults, scaled to `steps`)."""
+
+    steps: int = 7_000
+    """Total optimisation steps; every schedule is a function of step / steps."""
+    minutes: float | None = None
+    """If set, fit the whole schedule into this many minutes of wall time (step count estimated after a warm-up)."""
+    seed: int = 0
+    # --- data
+    downscale: int = 1
+    """Image downscale factor applied by the loader (1, 2, 4, 8)."""
+    background: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    """Background RGB the ground truth is composited over and the renderer draws behind the triangles."""
+    test_every: int = 8
+    """For captures without splits, every n-th image is held out for testing."""
+    # --- initialisation
+    init: str = "auto"
+    """'auto' | 'delaunay' (TS+) | 'soup' (MeshSplatting) | 'random' (synthetic scenes without points)."""
+    init_max_points: int = 50_000
+    """Subsample the sparse points to at most this many before initialisation."""
+    init_random_points: int = 10_000
+    """Triangles for random initialisation (scenes without sparse points)."""
+    init_opacity: float = 0.28
+    sh_degree: int = 3
+    """Maximum SH degree (0-3); the active degree rises by one every 1k paper-iterations."""
+    # --- learning rates (Adam, eps 1e-15)
+    lr_position: float = 1.5e-3
+    """Vertex position learning rate, times the scene extent; exponential decay to lr_position_final_ratio."""
+    lr_position_final_ratio: float = 0.01
+    position_hold: float = 1_000 / PAPER_STEPS
+    """Fraction of the run during which positions are frozen (lr 0)."""
+    lr_sh_dc: float = 1.6e-3
+    lr_sh_rest_ratio: float = 1 / 20
+    lr_opacity: float = 0.03
+    # --- soft-to-hard
+    sigma_start: float = 1.0
+    sigma_end: float = 1e-4
+    floor_start: float = 0.1
+    floor_end: float = 0.9999
+    floor_begin: float = 5_000 / PAPER_STEPS
+    floor_full: float = 24_000 / PAPER_STEPS
+    floor_interval: float = 500 / PAPER_STEPS
+    # --- losses
+    lambda_dssim: float = 0.2
+    lambda_opacity: float = 1.9e-6
+    opacity_penalty_until: float = 5_000 / PAPER_STEPS
+    lambda_normal: float = 5e-5
+    normal_from: float = 5_000 / PAPER_STEPS
+    lambda_vertex_depth: float = 2.5e-4
+    vertex_depth_from: float = 12_000 / PAPER_STEPS
+    vertex_depth_max_diff: float = 0.5
+    """Vertex-depth term only for |vertex depth - rendered depth| below this (scene units, normalised frame)."""
+    # --- pruning
+    prune_from: float = 4_000 / PAPER_STEPS
+    prune_until: float = 25_000 / PAPER_STEPS
+    prune_interval: float = 500 / PAPER_STEPS
+    prune_threshold_start: float = 0.235
+    prune_threshold_step: float = 0.01
+    prune_max_screen_frac: float = 0.875
+    """Faces whose projected longest edge exceeds this fraction of the image's larger side are pruned
+    (TS+ uses 1400 px on ~1600 px images)."""
+    final_max_weight_pass: bool = True
+    """After training, render all training views and drop faces whose max blending weight <= final_max_weight."""
+    final_max_weight: float = 0.5
+    # --- densification
+    densify_from: float = 500 / PAPER_STEPS
+    densify_until: float = 13_000 / PAPER_STEPS
+    densify_interval: float = 500 / PAPER_STEPS
+    densify_growth: float = 1.23
+    densify_largest: int = 100
+    max_vertices: int = 300_000
+    """Densification stops growing the vertex table beyond this cap."""
+    min_face_px: float = 1.0
+    """Faces smaller than this (longest edge, px) are never sampled for subdivision."""
+    # --- anti-aliasing
+    supersample_2x_from: float = 0.85
+    supersample_4x_from: float = 1.01
+    """Render at 4x from this progress (>1 disables; 4x is costly on CPU)."""
+    # --- MeshSplatting (soup -> connected mesh)
+    connect_at: float | None = None
+    """Progress at which the soup is replaced by its restricted Delaunay mesh (MeshSplatting stage 2); None = never."""
+    # --- renderer
+    near: float = 0.01
+    tile_size: int = 16
+    backend: str = "numba"
+    # --- bookkeeping
+    log_every: int = 10
+    eval_every: float = 0.25
+    """Evaluate test PSNR every this fraction of the run (and at the end)."""
+    eval_max_views: int = 8
+    """Test views rendered at intermediate evaluations (all of them at the end)."""
+    checkpoint_every_s: float = 120.0
+    """Wall-time interval between checkpoints (seconds)."""
+    num_renders: int = 4
+    """Test renders written to RUN/renders at the end."""
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @staticmethod
+    def from_dict(d: dict) -> "TrainConfig":
+        names = {f.name for f in dataclasses.fields(TrainConfig)}
+        unknown = set(d) - names
+        if unknown:
+            raise ValueError(f"unknown config keys: {sorted(unknown)}")
+        d = dict(d)
+        if "background" in d:
+            d["background"] = tuple(d["background"])
+        return TrainConfig(**d)
+
+
+PRESETS: dict[str, dict] = {
+    # A few minutes on a 2-core CPU: small images, modest triangle budget, SH degree 1.
+    "fast": dict(steps=1_500, sh_degree=1, max_vertices=60_000, init_random_points=4_000, init_max_points=8_000,
+                 supersample_2x_from=1.01, eval_every=0.5, eval_max_views=4),
+    "default": dict(steps=7_000, sh_degree=3, max_vertices=300_000),
+    # The paper's schedule.
+    "full": dict(steps=30_000, sh_degree=3, max_vertices=2_000_000, supersample_4x_from=0.95),
+    # MeshSplatting: soup initialisation, stage 2 restricted Delaunay at ~11k/30k, fine-tuning after.
+    "meshsplatting": dict(steps=7_000, init="soup", connect_at=11_000 / PAPER_STEPS,
+                          densify_until=10_000 / PAPER_STEPS, max_vertices=300_000),
+}
+
+
+def make_config(preset: str = "default", **overrides) -> TrainConfig:
+    if preset not in PRESETS:
+        raise ValueError(f"unknown preset {preset!r}; choose one of {sorted(PRESETS)}")
+    values = {**PRESETS[preset], **{k: v for k, v in overrides.items() if v is not None}}
+    return TrainConfig.from_dict(values)

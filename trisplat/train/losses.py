@@ -1,0 +1,88 @@
+"""Training losses: L1 + D-SSIM, opacity penalty, depth-normal consistency (2DGS), vertex-depth (MeshSplatting)."""
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+
+def photometric(pred: torch.Tensor, gt: torch.Tensor, lambda_dssim: float) -> torch.Tensor:
+    """(1 - lambda) * L1 + lambda * (1 - SSIM) on [H,W,3] images."""
+    from trisplat.eval.image_metrics import ssim_torch
+
+    l1 = (pred - gt).abs().mean()
+    if lambda_dssim == 0:
+        return l1
+    return (1.0 - lambda_dssim) * l1 + lambda_dssim * (1.0 - ssim_torch(pred, gt))
+
+
+def depth_to_normal(depth: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Camera-frame unit normals [H,W,3] from a view-depth map [H,W] (central differences of back-projected points),
+    oriented towards the camera, and a validity mask [H,W] (border pixels and zero depth are invalid)."""
+    H, W = depth.shape
+    v, u = torch.meshgrid(torch.arange(H, dtype=depth.dtype) + 0.5, torch.arange(W, dtype=depth.dtype) + 0.5,
+                          indexing="ij")
+    x = (u - K[0, 2]) / K[0, 0] * depth
+    y = (v - K[1, 2]) / K[1, 1] * depth
+    P = torch.stack([x, y, depth], -1)
+    du = torch.zeros_like(P)
+    dv = torch.zeros_like(P)
+    du[:, 1:-1] = P[:, 2:] - P[:, :-2]
+    dv[1:-1, :] = P[2:, :] - P[:-2, :]
+    n = torch.linalg.cross(du, dv, dim=-1)
+    n = F.normalize(n, dim=-1, eps=1e-12)
+    flip = (n * P).sum(-1, keepdim=True) > 0
+    n = torch.where(flip, -n, n)
+    valid = torch.zeros(H, W, dtype=torch.bool)
+    valid[1:-1, 1:-1] = (depth[1:-1, 1:-1] > 0) & (depth[2:, 1:-1] > 0) & (depth[:-2, 1:-1] > 0) \
+        & (depth[1:-1, 2:] > 0) & (depth[1:-1, :-2] > 0)
+    return n, valid
+
+
+def normal_consistency(normal: torch.Tensor, depth: torch.Tensor, alpha: torch.Tensor, K: torch.Tensor,
+                       min_alpha: float = 0.5) -> torch.Tensor:
+    """2DGS-style sum_i w_i (1 - n_i . N) = alpha - n_rendered . N, averaged over covered pixels, where N is the
+    normal of the rendered surface depth (expected depth / alpha)."""
+    covered = alpha > min_alpha
+    surf = torch.where(covered, depth / alpha.clamp_min(1e-6), torch.zeros_like(depth))
+    n_depth, valid = depth_to_normal(surf, K)
+    mask = covered & valid
+    if not mask.any():
+        return depth.sum() * 0.0
+    term = alpha - (normal * n_depth).sum(-1)
+    return term[mask].mean()
+
+
+def vertex_depth(positions: torch.Tensor, world_to_camera: torch.Tensor, K: torch.Tensor, depth: torch.Tensor,
+                 alpha: torch.Tensor, max_diff: float, min_alpha: float = 0.5) -> torch.Tensor:
+    """MeshSplatting's vertex-depth term: |z_vertex - rendered surface depth at its pixel| for vertices that project
+    inside the image onto covered pixels with a difference below max_diff (scene units)."""
+    H, W = depth.shape
+    pc = positions @ world_to_camera[:3, :3].T + world_to_camera[:3, 3]
+    z = pc[:, 2]
+    front = z > 1e-6
+    uv = pc[:, :2] / z.clamp_min(1e-6)[:, None] * torch.stack([K[0, 0], K[1, 1]]) + torch.stack([K[0, 2], K[1, 2]])
+    ix, iy = uv[:, 0].floor().long(), uv[:, 1].floor().long()
+    inside = front & (ix >= 0) & (ix < W) & (iy >= 0) & (iy < H)
+    if not inside.any():
+        return depth.sum() * 0.0
+    idx = torch.nonzero(inside).squeeze(1)
+    a = alpha[iy[idx], ix[idx]]
+    d = depth[iy[idx], ix[idx]] / a.clamp_min(1e-6)
+    diff = (z[idx] - d).abs()
+    ok = (a > min_alpha) & (diff < max_diff)
+    if not ok.any():
+        return depth.sum() * 0.0
+    return diff[ok].mean()
+
+
+def projected_edge_px(positions: torch.Tensor, faces: torch.Tensor, world_to_camera: torch.Tensor,
+                      K: torch.Tensor, near: float) -> torch.Tensor:
+    """Longest projected edge of each face in pixels [F]; 0 for faces with a vertex behind the near plane."""
+    pc = positions @ world_to_camera[:3, :3].T + world_to_camera[:3, 3]
+    z = pc[:, 2]
+    uv = pc[:, :2] / z.clamp_min(near)[:, None] * torch.stack([K[0, 0], K[1, 1]])
+    t = uv[faces]
+    e = torch.stack([(t[:, 1] - t[:, 0]).norm(dim=1), (t[:, 2] - t[:, 1]).norm(dim=1),
+                     (t[:, 0] - t[:, 2]).norm(dim=1)], 1).max(1).values
+    ok = (z[faces] > near).all(1)
+    return torch.where(ok, e, torch.zeros_like(e))

@@ -1,0 +1,326 @@
+"""The training loop: soft, semi-transparent triangles at the start, sharp opaque ones at the end."""
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from trisplat import run as layout
+from trisplat.data.types import SceneData
+from trisplat.render import rasterize
+from trisplat.scene.model import TriangleScene
+from trisplat.scene.sh import num_sh_bases
+from trisplat.strategy import ops
+from trisplat.strategy.densify import densify
+from trisplat.strategy.opacity import raise_floor
+from trisplat.strategy.prune import final_max_weight_prune, prune
+from trisplat.train import losses, schedules
+from trisplat.train.checkpoint import atomic_torch_save, checkpoint_state, load_checkpoint, restore_trainable
+from trisplat.train.config import TrainConfig
+
+MAX_ROLLBACKS = 3
+
+
+class TrainingDiverged(RuntimeError):
+    """NaN/Inf kept coming back after rolling back with lower learning rates."""
+
+
+@dataclass
+class TrainResult:
+    run_dir: Path
+    steps: int
+    wall_s: float
+    scene: TriangleScene
+    metrics: dict = field(default_factory=dict)
+
+
+def psnr_value(pred: torch.Tensor, gt: torch.Tensor) -> float:
+    mse = float(((pred - gt) ** 2).mean())
+    return float("inf") if mse == 0 else -10.0 * math.log10(mse)
+
+
+def view_for_step(step: int, train_indices: np.ndarray, seed: int) -> int:
+    """Views in shuffled epochs; a pure function of the step, so resume replays the same order."""
+    n = len(train_indices)
+    epoch, k = divmod(step, n)
+    return int(np.random.default_rng([seed, epoch]).permutation(train_indices)[k])
+
+
+class Trainer:
+    """Owns one optimisation: the trainable scene, its clock and the run directory. The maths lives elsewhere."""
+
+    def __init__(self, cfg: TrainConfig, data: SceneData, run_dir: str | Path, *, resume: bool = False,
+                 initial: TriangleScene | None = None, device: str | torch.device = "cpu",
+                 show_progress: bool = True, data_options: dict | None = None, data_path: str | None = None):
+        self.cfg, self.data, self.run_dir = cfg, data, Path(run_dir)
+        self.device = torch.device(device)
+        self.show_progress = show_progress
+        self.background = torch.tensor(cfg.background, dtype=torch.float32, device=self.device)
+        self.extent = 1.1 * data.scene_radius
+        self.generator = torch.Generator().manual_seed(cfg.seed)
+        self.lr_scale = 1.0
+        self.rollbacks = 0
+        self.wall_s = 0.0
+        self.connected = False
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        if resume:
+            ckpt = load_checkpoint(self.run_dir / layout.CHECKPOINT)
+            self._restore(ckpt)
+        else:
+            if initial is None:
+                from trisplat.scene.init import initial_scene
+
+                initial, report = initial_scene(
+                    data, method=cfg.init, sh_degree=cfg.sh_degree, seed=cfg.seed, opacity=cfg.init_opacity,
+                    max_points=cfg.init_max_points, random_points=cfg.init_random_points)
+                self.init_report = report
+            initial = _with_sh_degree(initial, cfg.sh_degree)
+            self.ts = ops.make_trainable(initial.detached(), {})
+            self.step = 0
+            self.clock = schedules.Clock(total=cfg.steps)
+            self._write_config(data_options or {}, data_path)
+            (self.run_dir / layout.HISTORY).write_text("")
+        self._last_good = checkpoint_state(self.ts, self.step, self.clock.total, self.generator, self._extra())
+
+    # ----------------------------------------------------------------------------------------------- bookkeeping
+    def _extra(self) -> dict:
+        return {"clock": [self.clock.total, self.clock.anchor_step, self.clock.anchor_p], "wall_s": self.wall_s,
+                "lr_scale": self.lr_scale, "rollbacks": self.rollbacks, "connected": self.connected,
+                "normalization": np.asarray(self.data.normalization).tolist()}
+
+    def _restore(self, ckpt: dict) -> None:
+        self.ts = restore_trainable(ckpt)
+        self.step = int(ckpt["step"])
+        total, anchor_step, anchor_p = ckpt["extra"]["clock"]
+        self.clock = schedules.Clock(int(total), int(anchor_step), float(anchor_p))
+        self.generator.set_state(ckpt["generator"])
+        self.wall_s = float(ckpt["extra"]["wall_s"])
+        self.lr_scale = float(ckpt["extra"]["lr_scale"])
+        self.rollbacks = int(ckpt["extra"]["rollbacks"])
+        self.connected = bool(ckpt["extra"].get("connected", False))
+
+    def _write_config(self, data_options: dict, data_path: str | None) -> None:
+        cfg = {**self.cfg.to_dict(), "data": str(data_path or self.data.root or ""), "data_options": data_options}
+        (self.run_dir / layout.CONFIG).write_text(json.dumps(cfg, indent=2))
+        self._write_state(finished=False)
+
+    def _write_state(self, finished: bool) -> None:
+        state = {"finished": finished, "step": self.step, "total_steps": self.clock.total,
+                 "sigma": schedules.sigma(self.clock.p(self.step), self.cfg), "opacity_floor": self.ts.opacity_floor}
+        tmp = self.run_dir / (layout.STATE + ".tmp")
+        tmp.write_text(json.dumps(state, indent=2))
+        tmp.replace(self.run_dir / layout.STATE)
+
+    def save_checkpoint(self) -> None:
+        self._last_good = checkpoint_state(self.ts, self.step, self.clock.total, self.generator, self._extra())
+        atomic_torch_save(self._last_good, self.run_dir / layout.CHECKPOINT)
+        self._write_state(finished=False)
+
+    def _log(self, record: dict) -> None:
+        with open(self.run_dir / layout.HISTORY, "a") as f:
+            f.write(json.dumps(record) + "\n")
+
+    # ------------------------------------------------------------------------------------------------- rendering
+    def render(self, cam_index: int, p: float, *, supersample: int = 1, sh_degree: int | None = None,
+               sigma: float | None = None):
+        cam = self.data.cameras[cam_index]
+        deg = schedules.sh_degree(p, self.cfg) if sh_degree is None else sh_degree
+        sh = self.ts.sh()[:, : num_sh_bases(deg)]
+        return rasterize(
+            self.ts.params["positions"], self.ts.faces.to(torch.int32), sh, self.ts.opacities(),
+            schedules.sigma(p, self.cfg) if sigma is None else sigma,
+            torch.as_tensor(cam.world_to_camera, dtype=torch.float32), torch.as_tensor(cam.K, dtype=torch.float32),
+            cam.width, cam.height, background=self.background, near=self.cfg.near, supersample=supersample,
+            tile_size=self.cfg.tile_size, backend=self.cfg.backend)
+
+    def gt(self, cam_index: int) -> torch.Tensor:
+        return torch.from_numpy(np.ascontiguousarray(self.data.load_image(cam_index))).to(self.device)
+
+    # ------------------------------------------------------------------------------------------------------ step
+    def _set_learning_rates(self, p: float) -> None:
+        lrs = {"positions": schedules.position_lr(p, self.cfg, self.extent), "sh_dc": self.cfg.lr_sh_dc,
+               "sh_rest": self.cfg.lr_sh_dc * self.cfg.lr_sh_rest_ratio, "opacity_logit": self.cfg.lr_opacity}
+        for group in self.ts.optimizer.param_groups:
+            group["lr"] = lrs[group["name"]] * self.lr_scale
+
+    def train_step(self) -> dict:
+        cfg, step = self.cfg, self.step
+        p = self.clock.p(step)
+        self._set_learning_rates(p)
+        new_floor = schedules.opacity_floor(p, cfg)
+        if new_floor > self.ts.opacity_floor:
+            raise_floor(self.ts, new_floor)
+        idx = view_for_step(step, self.data.train_indices, cfg.seed)
+        cam = self.data.cameras[idx]
+        out = self.render(idx, p, supersample=schedules.supersample(p, cfg))
+        gt = self.gt(idx)
+        loss = losses.photometric(out.rgb, gt, cfg.lambda_dssim)
+        if p < cfg.opacity_penalty_until and cfg.lambda_opacity > 0:
+            loss = loss + cfg.lambda_opacity * self.ts.opacities().mean()
+        K = torch.as_tensor(cam.K, dtype=torch.float32)
+        if p >= cfg.normal_from and cfg.lambda_normal > 0:
+            loss = loss + cfg.lambda_normal * losses.normal_consistency(out.normal, out.depth, out.alpha, K)
+        if p >= cfg.vertex_depth_from and cfg.lambda_vertex_depth > 0:
+            w2c = torch.as_tensor(cam.world_to_camera, dtype=torch.float32)
+            loss = loss + cfg.lambda_vertex_depth * losses.vertex_depth(
+                self.ts.params["positions"], w2c, K, out.depth, out.alpha, cfg.vertex_depth_max_diff)
+        loss.backward()
+        finite = bool(torch.isfinite(loss)) and all(
+            torch.isfinite(v.grad).all() for v in self.ts.params.values() if v.grad is not None)
+        if not finite:
+            self.ts.optimizer.zero_grad(set_to_none=True)
+            return {"ok": False}
+        self.ts.optimizer.step()
+        self.ts.optimizer.zero_grad(set_to_none=True)
+        if not all(torch.isfinite(v).all() for v in self.ts.params.values()):
+            return {"ok": False}
+        with torch.no_grad():
+            st = self.ts.face_stats
+            st["max_weight"] = torch.maximum(st["max_weight"], out.max_weight.detach())
+            px = losses.projected_edge_px(self.ts.params["positions"].detach(), self.ts.faces,
+                                          torch.as_tensor(cam.world_to_camera, dtype=torch.float32), K, cfg.near)
+            st["max_screen_px"] = torch.maximum(st["max_screen_px"], px)
+        return {"ok": True, "loss": float(loss), "psnr": psnr_value(out.rgb.detach().clamp(0, 1), gt)}
+
+    def _strategy(self, p_prev: float, p: float) -> None:
+        """Periodic events: epoch roll of statistics, pruning, densification, switch to a connected mesh."""
+        cfg, ts = self.cfg, self.ts
+        n_train = len(self.data.train_indices)
+        if self.step % n_train == 0:
+            ts.roll_face_stats()
+        if cfg.connect_at is not None and not self.connected and p >= cfg.connect_at:
+            self._connect()
+        seen_all_views = self.step >= n_train
+        if seen_all_views and not self.connected and schedules.crossed(
+                p_prev, p, cfg.prune_from, cfg.prune_until, cfg.prune_interval):
+            cam = self.data.cameras[self.data.train_indices[0]]
+            prune(ts, schedules.prune_threshold(p, cfg), cfg.prune_max_screen_frac * max(cam.width, cam.height))
+        if seen_all_views and not self.connected and schedules.crossed(
+                p_prev, p, cfg.densify_from, cfg.densify_until, cfg.densify_interval):
+            densify(ts, cfg.densify_growth, cfg.max_vertices, cfg.densify_largest, cfg.min_face_px, self.generator)
+
+    def _connect(self) -> None:
+        from trisplat.mesh import connect_scene
+
+        connected, _report = connect_scene(self.ts.to_scene())
+        ops.set_faces(self.ts, connected.faces)
+        ops.remove_orphan_vertices(self.ts)
+        self.connected = True
+
+    def _rollback(self) -> None:
+        self.rollbacks += 1
+        if self.rollbacks > MAX_ROLLBACKS:
+            raise TrainingDiverged(
+                f"NaN/Inf in the loss or parameters at step {self.step} after {MAX_ROLLBACKS} rollbacks with halved "
+                f"learning rates; the last good checkpoint is {self.run_dir / layout.CHECKPOINT}. Try a lower "
+                "--lr-position or check the input poses.")
+        rollbacks = self.rollbacks
+        self._restore(self._last_good)
+        self.rollbacks = rollbacks
+        self.lr_scale *= 0.5
+
+    # ------------------------------------------------------------------------------------------------ evaluation
+    @torch.no_grad()
+    def evaluate(self, p: float, max_views: int | None = None) -> float:
+        idx = list(self.data.test_indices)[: max_views or None]
+        if not idx:
+            return float("nan")
+        return float(np.mean([psnr_value(self.render(i, p).rgb.clamp(0, 1), self.gt(i)) for i in idx]))
+
+    # ------------------------------------------------------------------------------------------------------- run
+    def _plan_minutes(self, measured_s_per_step: float, elapsed_s: float) -> None:
+        """Fit the remaining schedule into the time budget from the measured step rate (later steps are dearer:
+        more faces, supersampling; the margin covers it and re-planning corrects it)."""
+        budget = self.cfg.minutes * 60.0 - elapsed_s
+        remaining = max(int(budget * 0.85 / max(measured_s_per_step, 1e-4)), 1)
+        self.clock.replan(self.step, self.step + remaining)
+
+    def train(self, stop_after: int | None = None) -> TrainResult:
+        cfg = self.cfg
+        replan_at = [0.02, 0.2, 0.5, 0.8] if cfg.minutes else []
+        window: list[float] = []
+        bar = tqdm(total=self.clock.total, initial=self.step, disable=not self.show_progress, unit="step",
+                   dynamic_ncols=True, desc="train")
+        next_eval = cfg.eval_every
+        while self.step < self.clock.total:
+            if stop_after is not None and self.step >= stop_after:
+                break
+            t0 = time.perf_counter()
+            p_prev = self.clock.p(self.step - 1) if self.step > 0 else -1.0
+            p = self.clock.p(self.step)
+            self._strategy(p_prev, p)
+            info = self.train_step()
+            if not info["ok"]:
+                self._rollback()
+                bar.reset(total=self.clock.total)
+                bar.update(self.step)
+                continue
+            self.step += 1
+            dt = time.perf_counter() - t0
+            self.wall_s += dt
+            window = (window + [dt])[-50:]
+            if cfg.minutes and replan_at and self.clock.p(self.step) >= replan_at[0] and len(window) >= 5:
+                replan_at.pop(0)
+                self._plan_minutes(float(np.median(window)), self.wall_s)
+                bar.total = self.clock.total
+            if self.step % cfg.log_every == 0 or self.step == self.clock.total:
+                rec = {"step": self.step, "wall_s": round(self.wall_s, 3), "loss": info["loss"], "psnr": info["psnr"],
+                       "faces": self.ts.num_faces, "vertices": self.ts.num_vertices,
+                       "sigma": schedules.sigma(self.clock.p(self.step), cfg), "floor": self.ts.opacity_floor}
+                self._log(rec)
+                bar.set_postfix(loss=f"{info['loss']:.4f}", psnr=f"{info['psnr']:.2f}", faces=self.ts.num_faces,
+                                sigma=f"{rec['sigma']:.3g}")
+            if self.clock.p(self.step) >= next_eval and self.step < self.clock.total:
+                next_eval += cfg.eval_every
+                test_psnr = self.evaluate(self.clock.p(self.step), cfg.eval_max_views)
+                self._log({"step": self.step, "wall_s": round(self.wall_s, 3), "test_psnr": test_psnr,
+                           "faces": self.ts.num_faces})
+                bar.write(f"step {self.step}: test PSNR {test_psnr:.2f} dB ({self.ts.num_faces} faces)")
+            if self.wall_s - float(self._last_good["extra"]["wall_s"]) >= cfg.checkpoint_every_s:
+                self.save_checkpoint()
+            bar.update(1)
+        bar.close()
+        self.save_checkpoint()
+        finished = self.step >= self.clock.total
+        result = TrainResult(self.run_dir, self.step, self.wall_s, self.ts.to_scene())
+        if finished:
+            result.metrics = self.finish()
+        return result
+
+    # ---------------------------------------------------------------------------------------------------- finish
+    @torch.no_grad()
+    def final_max_weight(self) -> torch.Tensor:
+        """Max blending weight of every face over all training views, with the final sharp, opaque settings."""
+        mw = torch.zeros(self.ts.num_faces)
+        for i in self.data.train_indices:
+            mw = torch.maximum(mw, self.render(int(i), 1.0).max_weight)
+        return mw
+
+    def finish(self) -> dict:
+        """Final pruning pass, model and mesh files, test renders and metrics; marks the run finished."""
+        from trisplat.train.outputs import write_outputs
+
+        t0 = time.perf_counter()
+        pruned = None
+        if self.cfg.final_max_weight_pass and not self.connected:
+            pruned = final_max_weight_prune(self.ts, self.final_max_weight(), self.cfg.final_max_weight)
+        metrics = write_outputs(self, pruned)
+        self.wall_s += time.perf_counter() - t0
+        self._write_state(finished=True)
+        return metrics
+
+
+def _with_sh_degree(scene: TriangleScene, degree: int) -> TriangleScene:
+    """Pad or cut the SH table to `degree` bands (new bands zero)."""
+    K = num_sh_bases(degree)
+    sh = scene.sh
+    if sh.shape[1] < K:
+        sh = torch.cat([sh, torch.zeros(sh.shape[0], K - sh.shape[1], 3, dtype=sh.dtype)], 1)
+    return TriangleScene(scene.positions, sh[:, :K].contiguous(), scene.opacity_logit, scene.faces,
+                         scene.opacity_floor)
