@@ -1,0 +1,48 @@
+"""`trisplat export RUN`: write a trained run as PLY / OBJ (+MTL) / GLB meshes and the full model PLY."""
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal, Optional
+
+import tyro
+
+from trisplat.io.export_run import EXPORT_FORMATS, export_run, export_targets
+
+EXPORT_SUBDIR = "export"
+
+
+@dataclass
+class ExportConfig:
+    """Export a run's mesh in the capture's own frame and units (the inverse of the scene normalisation).
+
+    Meshes carry the view-independent colour (SH band 0) per vertex; `model` is the full model PLY with every SH
+    coefficient and the opacity, which reloads losslessly."""
+
+    run: tyro.conf.Positional[Path]
+    """run folder written by `trisplat train`"""
+    formats: tuple[Literal["ply", "obj", "glb", "model"], ...] = ("ply", "obj", "glb")
+    """formats to write: ply (binary, per-vertex RGB), obj (+ mtl), glb (glTF 2.0, COLOR_0), model (SH PLY)"""
+    up: Optional[Literal["y", "z"]] = None
+    """rotate meshes so the capture's up (mean camera up vector) becomes +Y (glTF, Unity) or +Z (Blender, MuJoCo);
+    default: keep the capture's own axes"""
+    out: Optional[Path] = None
+    """output folder (default: RUN/export)"""
+    force: bool = False
+    """replace files that already exist in the output folder"""
+
+
+def main(argv: list[str]) -> int:
+    cfg = tyro.cli(ExportConfig, args=argv, description=__doc__)
+    out = cfg.run / EXPORT_SUBDIR if cfg.out is None else cfg.out
+    formats = tuple(dict.fromkeys(cfg.formats))
+    assert set(formats) <= set(EXPORT_FORMATS)
+    existing = [p for p in export_targets(out, formats) if p.exists()]
+    if existing and not cfg.force:
+        names = ", ".join(str(p) for p in existing)
+        print(f"trisplat export: error: would overwrite {names}; pass --force to replace them", file=sys.stderr)
+        return 1
+    for path in export_run(cfg.run, formats=formats, up=cfg.up, out_dir=out):
+        print(path)
+    return 0

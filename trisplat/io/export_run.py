@@ -1,0 +1,73 @@
+"""Export a trained run: plain-colour meshes (ply/obj/glb) and the full model PLY, in the capture's frame."""
+from __future__ import annotations
+
+import warnings
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from trisplat.io.axes import estimate_capture_up
+from trisplat.io.mesh_files import FORMATS, export_mesh
+from trisplat.io.model_ply import save_model_ply
+
+MODEL_FORMAT = "model"  # the full model PLY (every SH band, opacity): `model.ply`
+MESH_STEM = "mesh"
+EXPORT_FORMATS = tuple(s.lstrip(".") for s in FORMATS) + (MODEL_FORMAT,)
+
+
+def export_targets(out_dir: Path, formats: Sequence[str]) -> list[Path]:
+    """The files `export_run` writes into `out_dir` for `formats` (an OBJ brings its MTL)."""
+    out: list[Path] = []
+    for f in formats:
+        if f not in EXPORT_FORMATS:
+            raise ValueError(f"unknown export format {f!r}; choose from {', '.join(EXPORT_FORMATS)}")
+        if f == MODEL_FORMAT:
+            out.append(out_dir / "model.ply")
+        else:
+            out.append(out_dir / f"{MESH_STEM}.{f}")
+            if f == "obj":
+                out.append(out_dir / f"{MESH_STEM}.mtl")
+    return out
+
+
+def export_run(
+    run_dir: str | Path,
+    formats: Sequence[str] = ("ply", "obj", "glb"),
+    up: str | None = None,
+    out_dir: str | Path | None = None,
+) -> list[Path]:
+    """Write the run's model as `mesh.<fmt>` (base colour = SH DC term) and/or `model.ply` into `out_dir`
+    (default: the run folder; existing files are replaced). Meshes land in the capture frame (the inverse of the
+    scene normalisation); `up='y'|'z'` rotates the meshes so the capture's up direction, estimated from the
+    training cameras (see trisplat.io.axes), becomes +Y / +Z. The model PLY is never rotated (SH would change).
+    Returns the files written.
+    """
+    from trisplat.run import open_run
+
+    run = open_run(run_dir)
+    out = Path(run_dir) if out_dir is None else Path(out_dir)
+    export_targets(out, formats)  # validates the format names before any work
+    out.mkdir(parents=True, exist_ok=True)
+    scene, normalization = run.load_model()
+    capture_up = None
+    if up is not None:
+        try:
+            capture_up = estimate_capture_up(run.load_scene_data().cameras)
+        except (FileNotFoundError, ValueError) as exc:
+            warnings.warn(f"{run_dir}: cannot read the capture's cameras ({exc}); assuming the default up axis")
+        if capture_up is None:
+            warnings.warn(f"{run_dir}: the cameras do not agree on an up direction; assuming the default up axis")
+    inverse = np.linalg.inv(np.asarray(normalization, dtype=np.float64))
+    positions = scene.positions.detach().cpu().numpy()
+    faces = scene.faces.detach().cpu().numpy()
+    colors = scene.base_colors().detach().cpu().clamp(0.0, 1.0).numpy()
+    written: list[Path] = []
+    for f in formats:
+        if f == MODEL_FORMAT:
+            written.append(save_model_ply(out / "model.ply", scene, normalization))
+        else:
+            written += export_mesh(
+                out / f"{MESH_STEM}.{f}", positions, faces, colors, up=up, transform=inverse, capture_up=capture_up
+            )
+    return written
