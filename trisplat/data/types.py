@@ -21,6 +21,11 @@ class SceneData:
     background: RGB in [0,1] that transparent ground-truth pixels were composited over.
     format: 'colmap' | 'blender' | 'ngp' | 'rgbd' (what the loader detected).
     warnings: things the loader fixed or skipped, in words a person can read.
+    bounds: float64 [2,3] (min, max) box of the scene content in the normalised frame (the object box of a
+        synthetic scene, the robust box of the sparse points, or the box of the camera centres), or None.
+    options: the loader options actually used (plain JSON-able values): `load_dataset(root, **options)`
+        reloads the same dataset.
+    depth_loader: callable index -> float32 [H,W] depth in normalised units (RGB-D captures), or None.
     """
 
     cameras: list[Camera]
@@ -34,12 +39,26 @@ class SceneData:
     root: Path | None = None
     warnings: list[str] = field(default_factory=list)
     image_loader: object | None = field(default=None, repr=False)
+    bounds: np.ndarray | None = None
+    options: dict = field(default_factory=dict)
+    depth_loader: object | None = field(default=None, repr=False)
 
     def load_image(self, index: int) -> np.ndarray:
         """Ground-truth image of camera `index`: float32 [H,W,3] in [0,1], composited over `background`."""
         if self.image_loader is None:
             raise RuntimeError("this SceneData has no image loader")
         return self.image_loader(index)
+
+    def load_depth(self, index: int) -> np.ndarray:
+        """Depth of camera `index` (RGB-D captures): float32 [H,W] view depth in normalised units, 0 = invalid."""
+        if self.depth_loader is None:
+            raise RuntimeError(f"this SceneData ({self.format or 'unknown format'}) has no depth maps")
+        return self.depth_loader(index)
+
+    @property
+    def scale(self) -> float:
+        """Normalised units per capture unit (the uniform scale inside `normalization`)."""
+        return float(np.cbrt(abs(np.linalg.det(self.normalization[:3, :3]))))
 
     @property
     def scene_radius(self) -> float:
