@@ -5,7 +5,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
-import torch
 import tyro
 from tqdm import tqdm
 
@@ -24,34 +23,23 @@ class RenderArgs:
 
 
 def render_split(args: RenderArgs) -> list[Path]:
-    from trisplat.render import rasterize
+    from trisplat.eval.views import render_view, soft_sigma
     from trisplat.run import open_run
-    from trisplat.train.outputs import render_hard_view, to_png
+    from trisplat.train.outputs import image_stem, to_png
 
     run = open_run(args.run)
     scene, _ = run.load_model()
     data = run.load_scene_data()
-    bg = tuple(run.config.get("background", (1.0, 1.0, 1.0)))
-    idx = {"train": data.train_indices, "test": data.test_indices,
-           "all": range(len(data.cameras))}[args.split]
+    sigma = soft_sigma(run) if args.mode == "soft" else None
+    idx = {"train": data.train_indices, "test": data.test_indices, "all": range(len(data.cameras))}[args.split]
     args.out.mkdir(parents=True, exist_ok=True)
     written = []
     for i in tqdm(list(idx), desc=f"render {args.split}"):
         cam = data.cameras[int(i)]
-        stem = Path(cam.image_path).stem if cam.image_path else f"view_{int(i):04d}"
-        path = args.out / f"{stem}.png"
+        path = args.out / f"{image_stem(cam, int(i))}.png"
         if path.exists() and not args.force:
             raise FileExistsError(f"{path} exists; pass --force to overwrite")
-        with torch.no_grad():
-            if args.mode == "hard":
-                rgb = render_hard_view(scene, cam, bg)
-            else:
-                rgb = rasterize(scene.positions, scene.faces, scene.sh, scene.opacities(),
-                                float(run.config.get("sigma_end", 1e-4)),
-                                torch.as_tensor(cam.world_to_camera, dtype=torch.float32),
-                                torch.as_tensor(cam.K, dtype=torch.float32), cam.width, cam.height,
-                                background=torch.tensor(bg, dtype=torch.float32)).rgb
-        to_png(rgb, path)
+        to_png(render_view(scene, cam, args.mode, data.background, sigma), path)
         written.append(path)
     return written
 
