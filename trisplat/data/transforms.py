@@ -103,7 +103,7 @@ def _camera(meta: dict, frame: dict, img: Path, path: Path, where: str) -> Sourc
     if model not in JSON_CAMERA_MODELS:
         raise ValueError(f"{path}: {where}: unknown camera model {model!r} (supported: {', '.join(JSON_CAMERA_MODELS)})")
     k = {key: (get(key) or 0.0) for key in ("k1", "k2", "k3", "k4", "p1", "p2")}
-    if model in ("PINHOLE", "SIMPLE_PINHOLE"):
+    if model in ("PINHOLE", "SIMPLE_PINHOLE") or not any(k.values()):
         return SourceCamera("PINHOLE", w, h, (fx, fy, cx, cy))
     if model == "OPENCV_FISHEYE":
         return SourceCamera("OPENCV_FISHEYE", w, h, (fx, fy, cx, cy, k["k1"], k["k2"], k["k3"], k["k4"]))

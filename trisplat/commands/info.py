@@ -1,0 +1,71 @@
+"""`trisplat info PATH`: a readable summary of a capture (format, cameras, splits, points, bounds, warnings)."""
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import tyro
+
+
+@dataclass
+class InfoConfig:
+    """Summarise a capture folder as trisplat reads it (no images are processed)."""
+
+    path: tyro.conf.Positional[Path]
+    """capture folder (COLMAP, Blender/NeRF, instant-ngp, RGB-D), a transforms.json, or a COLMAP sparse/0"""
+    downscale: int = 1
+    """1, 2, 4 or 8: report resolutions and intrinsics at this downscale"""
+    test_every: int = 8
+    """hold out every n-th image for test when the capture has no split (0: none)"""
+    format: str = "auto"
+    """auto | colmap | blender | ngp | rgbd"""
+
+
+def _fmt_vec(v) -> str:
+    return "(" + ", ".join(f"{x:.4g}" for x in np.asarray(v).ravel()) + ")"
+
+
+def describe(data) -> str:
+    """The summary text for a loaded SceneData."""
+    cams = data.cameras
+    lines = [f"capture     {data.root}", f"format      {data.format}"]
+    models = Counter(c.extras.get("source_model", "PINHOLE") for c in cams)
+    undist = sum(bool(c.extras.get("undistorted")) for c in cams)
+    model_txt = ", ".join(f"{m} x{n}" for m, n in models.most_common())
+    lines.append(f"cameras     {len(cams)} ({model_txt}; {undist} undistorted to pinhole)")
+    sizes = Counter((c.width, c.height) for c in cams)
+    lines.append("resolution  " + ", ".join(f"{w}x{h} x{n}" for (w, h), n in sizes.most_common()))
+    src = Counter(tuple(c.extras.get("source_size", (c.width, c.height))) for c in cams)
+    lines.append("source      " + ", ".join(f"{w}x{h} x{n}" for (w, h), n in src.most_common()))
+    f = np.array([[c.K[0, 0], c.K[1, 1]] for c in cams])
+    lines.append(f"focal       fx {f[:, 0].min():.1f}..{f[:, 0].max():.1f}  fy {f[:, 1].min():.1f}..{f[:, 1].max():.1f} px")
+    lines.append(f"split       {len(data.train_indices)} train, {len(data.test_indices)} test")
+    if data.points is not None:
+        lines.append(f"points      {len(data.points)}")
+    else:
+        lines.append("points      none (random initialisation in the bounds)")
+    if data.format == "rgbd":
+        lines.append(f"depth       scale {cams[0].depth_scale:g} capture units per raw value")
+    s = data.scale
+    centre = -data.normalization[:3, 3] / s
+    lines.append(f"normalise   rule {data.options.get('normalize')}: scale {s:.6g} per capture unit, "
+                 f"capture centre {_fmt_vec(centre)}")
+    if data.bounds is not None:
+        lines.append(f"bounds      {_fmt_vec(data.bounds[0])} .. {_fmt_vec(data.bounds[1])} (normalised)")
+    lines.append(f"cam radius  {data.scene_radius:.4g} (normalised)")
+    lines.append(f"background  {_fmt_vec(data.background)}")
+    for w in data.warnings:
+        lines.append(f"warning     {w}")
+    return "\n".join(lines)
+
+
+def main(argv: list[str]) -> int:
+    cfg = tyro.cli(InfoConfig, args=argv, description=__doc__)
+    from trisplat.data import load_dataset
+
+    data = load_dataset(cfg.path, downscale=cfg.downscale, test_every=cfg.test_every, format=cfg.format,
+                        prepare="lazy")
+    print(describe(data))
+    return 0

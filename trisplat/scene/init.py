@@ -1,0 +1,262 @@
+"""Initial triangles from a capture: Delaunay faces of the sparse points, a per-point soup, or random soup."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from trisplat.scene.model import TriangleScene
+
+TSPLUS_OPACITY = 0.28  # vertex opacity of the Triangle Splatting+ Delaunay initialisation
+SOUP_SIZE_FACTOR = 2.23  # soup triangle circumradius / RMS distance to the SOUP_NEIGHBOURS nearest neighbours
+SOUP_NEIGHBOURS = 3
+DEDUP_RELATIVE_TOL = 1e-7  # points closer than this x bounding-box diagonal are duplicates (unitless)
+FLAT_RELATIVE_TOL = 1e-6  # smallest / largest singular value of the centred points below this = flat set
+JITTER_RELATIVE = 1e-4  # jitter amplitude for flat sets, x bounding-box diagonal
+MIN_SOUP_RELATIVE_SIZE = 1e-4  # smallest soup triangle radius, x bounding-box diagonal (isolated duplicates)
+DEFAULT_RANDOM_POINTS = 10_000
+QHULL_OPTIONS = "Qbb Qc Qz Q12"  # scipy's defaults for 3-D Delaunay
+QHULL_JOGGLE_OPTIONS = "QJ Qbb"  # retry: joggled input always yields simplices
+
+
+@dataclass
+class InitReport:
+    """What an initialisation did, in numbers and words (print `summary()`)."""
+
+    method: str
+    input_points: int
+    vertices: int
+    faces: int
+    nonfinite_removed: int = 0
+    duplicates_removed: int = 0
+    subsampled_from: int | None = None
+    jittered: bool = False
+    fallback: str | None = None
+    notes: list[str] = field(default_factory=list)
+
+    def summary(self) -> str:
+        s = f"{self.method}: {self.input_points} points -> {self.vertices} vertices, {self.faces} faces"
+        extra = []
+        if self.nonfinite_removed:
+            extra.append(f"{self.nonfinite_removed} non-finite points dropped")
+        if self.duplicates_removed:
+            extra.append(f"{self.duplicates_removed} duplicate points merged")
+        if self.subsampled_from is not None:
+            extra.append(f"subsampled from {self.subsampled_from}")
+        if self.jittered:
+            extra.append("jittered (flat or degenerate set)")
+        if self.fallback:
+            extra.append(f"fell back: {self.fallback}")
+        return s + (f" ({'; '.join(extra + self.notes)})" if extra or self.notes else "")
+
+
+def _clean(points, colors, report: InitReport, max_points: int | None, rng: np.random.Generator):
+    """Drop non-finite rows, merge duplicates (first colour kept), subsample to max_points."""
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    cols = np.full((len(pts), 3), 0.5) if colors is None else np.asarray(colors, dtype=np.float64).reshape(-1, 3)
+    if len(cols) != len(pts):
+        raise ValueError(f"points [{len(pts)},3] and colors [{len(cols)},3] differ in length")
+    ok = np.isfinite(pts).all(1) & np.isfinite(cols).all(1)
+    report.nonfinite_removed = int((~ok).sum())
+    pts, cols = pts[ok], np.clip(cols[ok], 0.0, 1.0)
+    if len(pts):
+        diag = float(np.linalg.norm(pts.max(0) - pts.min(0)))
+        tol = DEDUP_RELATIVE_TOL * diag if diag > 0 else 1.0
+        keys = np.round((pts - pts.min(0)) / tol).astype(np.int64)
+        _, first = np.unique(keys, axis=0, return_index=True)
+        first.sort()
+        report.duplicates_removed = len(pts) - len(first)
+        pts, cols = pts[first], cols[first]
+    if max_points is not None and len(pts) > max_points:
+        report.subsampled_from = len(pts)
+        keep = np.sort(rng.choice(len(pts), size=max_points, replace=False))
+        pts, cols = pts[keep], cols[keep]
+    return pts, cols
+
+
+def _is_flat(pts: np.ndarray) -> bool:
+    if len(pts) < 4:
+        return True
+    sv = np.linalg.svd(pts - pts.mean(0), compute_uv=False)
+    return bool(sv[0] == 0 or sv[-1] / sv[0] < FLAT_RELATIVE_TOL)
+
+
+def tetra_faces(simplices: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Unique faces [F,3] of tetrahedra [T,4]; each oriented away from the tetrahedron it was first seen in
+    (hull faces therefore point outwards)."""
+    tets = np.asarray(simplices, dtype=np.int64)
+    opposite_order = [(1, 2, 3, 0), (0, 3, 2, 1), (0, 1, 3, 2), (0, 2, 1, 3)]
+    faces = np.concatenate([tets[:, list(o[:3])] for o in opposite_order])
+    opp = np.concatenate([tets[:, o[3]] for o in opposite_order])
+    _, first = np.unique(np.sort(faces, axis=1), axis=0, return_index=True)
+    faces, opp = faces[first], opp[first]
+    a, b, c = pts[faces[:, 0]], pts[faces[:, 1]], pts[faces[:, 2]]
+    n = np.cross(b - a, c - a)
+    flip = np.einsum("ij,ij->i", n, pts[opp] - a) > 0
+    faces[flip] = faces[flip][:, [0, 2, 1]]
+    return faces
+
+
+def init_delaunay(
+    points,
+    colors=None,
+    opacity: float = TSPLUS_OPACITY,
+    sh_degree: int = 3,
+    max_points: int | None = None,
+    seed: int = 0,
+) -> tuple[TriangleScene, InitReport]:
+    """Triangle Splatting+ initialisation: 3-D Delaunay of the (deduplicated) points, every unique tetrahedron
+    face a triangle, vertex colour = point colour, opacity `opacity`, SH bands above 0 zero.
+
+    Flat (coplanar / collinear) sets are jittered by JITTER_RELATIVE x their extent; if Qhull still fails the
+    input is joggled (Qhull 'QJ'); fewer than 4 usable points fall back to a soup (init_soup). The report says
+    which happened. points: [P,3]; colors: [P,3] in [0,1] (grey when None).
+    """
+    rng = np.random.default_rng(seed)
+    report = InitReport("delaunay", input_points=int(np.asarray(points).reshape(-1, 3).shape[0]), vertices=0, faces=0)
+    pts, cols = _clean(points, colors, report, max_points, rng)
+    if len(pts) < 4:
+        scene, sub = init_soup(pts, cols, seed=seed, opacity=opacity, sh_degree=sh_degree)
+        sub.method = "delaunay"
+        sub.input_points = report.input_points
+        sub.nonfinite_removed, sub.duplicates_removed = report.nonfinite_removed, report.duplicates_removed
+        sub.fallback = f"soup ({len(pts)} distinct points are too few for a tetrahedralisation)"
+        return scene, sub
+    from scipy.spatial import Delaunay, QhullError
+
+    diag = float(np.linalg.norm(pts.max(0) - pts.min(0)))
+    work = pts
+    if _is_flat(pts):
+        work = pts + rng.normal(scale=JITTER_RELATIVE * diag, size=pts.shape)
+        report.jittered = True
+    try:
+        tri = Delaunay(work, qhull_options=QHULL_OPTIONS)
+    except QhullError:
+        tri = Delaunay(work, qhull_options=QHULL_JOGGLE_OPTIONS)
+        report.jittered = True
+        report.notes.append("Qhull needed joggled input (QJ)")
+    faces = tetra_faces(tri.simplices, work)
+    used = np.unique(faces)
+    if len(used) < len(pts):
+        report.notes.append(f"{len(pts) - len(used)} points in no tetrahedron were dropped")
+        remap = np.full(len(pts), -1, dtype=np.int64)
+        remap[used] = np.arange(len(used))
+        faces, pts, cols = remap[faces], pts[used], cols[used]
+    scene = TriangleScene.from_rgb(pts.astype(np.float32), faces.astype(np.int32), cols.astype(np.float32), opacity, sh_degree)
+    report.vertices, report.faces = scene.num_vertices, scene.num_faces
+    return scene, report
+
+
+def _random_rotations(n: int, rng: np.random.Generator) -> np.ndarray:
+    """n uniformly random rotation matrices [n,3,3] (from random unit quaternions)."""
+    q = rng.normal(size=(n, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    w, x, y, z = q.T
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        1,
+    )
+
+
+def soup_sizes(pts: np.ndarray) -> np.ndarray:
+    """Per-point triangle circumradius: SOUP_SIZE_FACTOR x RMS distance to the SOUP_NEIGHBOURS nearest others."""
+    from scipy.spatial import cKDTree
+
+    n = len(pts)
+    diag = float(np.linalg.norm(pts.max(0) - pts.min(0))) if n else 0.0
+    floor = MIN_SOUP_RELATIVE_SIZE * diag if diag > 0 else 1e-3
+    if n < 2:
+        return np.full(n, floor)
+    k = min(SOUP_NEIGHBOURS, n - 1)
+    d, _ = cKDTree(pts).query(pts, k=k + 1)
+    rms = np.sqrt(np.mean(d[:, 1:] ** 2, axis=1))
+    return np.maximum(SOUP_SIZE_FACTOR * rms, floor)
+
+
+def init_soup(
+    points,
+    colors=None,
+    rng: np.random.Generator | None = None,
+    seed: int = 0,
+    opacity: float = TSPLUS_OPACITY,
+    sh_degree: int = 3,
+    max_points: int | None = None,
+) -> tuple[TriangleScene, InitReport]:
+    """MeshSplatting / TS v1 soup: one randomly oriented equilateral triangle per point (3 private vertices),
+    centred on the point, circumradius SOUP_SIZE_FACTOR x the RMS distance to its 3 nearest neighbours."""
+    rng = rng if rng is not None else np.random.default_rng(seed)
+    report = InitReport("soup", input_points=int(np.asarray(points).reshape(-1, 3).shape[0]), vertices=0, faces=0)
+    pts, cols = _clean(points, colors, report, max_points, rng)
+    n = len(pts)
+    if n == 0:
+        raise ValueError("cannot initialise triangles from an empty point set (no finite points)")
+    ang = np.array([0.0, 2 * np.pi / 3, 4 * np.pi / 3])
+    template = np.stack([np.cos(ang), np.sin(ang), np.zeros(3)], axis=1)  # unit circumradius, plane z = 0
+    R = _random_rotations(n, rng)
+    verts = pts[:, None, :] + soup_sizes(pts)[:, None, None] * np.einsum("nij,kj->nki", R, template)
+    faces = np.arange(3 * n, dtype=np.int32).reshape(n, 3)
+    scene = TriangleScene.from_rgb(
+        verts.reshape(-1, 3).astype(np.float32), faces, np.repeat(cols, 3, axis=0).astype(np.float32), opacity, sh_degree
+    )
+    report.vertices, report.faces = scene.num_vertices, scene.num_faces
+    return scene, report
+
+
+def init_random(
+    bounds_min,
+    bounds_max,
+    n: int = DEFAULT_RANDOM_POINTS,
+    seed: int = 0,
+    opacity: float = TSPLUS_OPACITY,
+    sh_degree: int = 3,
+) -> tuple[TriangleScene, InitReport]:
+    """Synthetic scenes without points: n uniform random points in the box, random colours, each turned into a
+    small random triangle (init_soup)."""
+    lo = np.asarray(bounds_min, dtype=np.float64).reshape(3)
+    hi = np.asarray(bounds_max, dtype=np.float64).reshape(3)
+    if not (np.isfinite(lo).all() and np.isfinite(hi).all() and (hi > lo).all()):
+        raise ValueError(f"random initialisation needs a finite box with max > min, got {lo} .. {hi}")
+    if int(n) < 1:
+        raise ValueError(f"random initialisation needs n >= 1 points, got {n}")
+    rng = np.random.default_rng(seed)
+    pts = lo + rng.random((int(n), 3)) * (hi - lo)
+    cols = rng.random((int(n), 3))
+    scene, report = init_soup(pts, cols, rng=rng, opacity=opacity, sh_degree=sh_degree)
+    report.method = "random"
+    report.notes.append(f"uniform in [{', '.join(f'{v:.3g}' for v in lo)}] .. [{', '.join(f'{v:.3g}' for v in hi)}]")
+    return scene, report
+
+
+def initial_scene(
+    data,
+    method: str = "auto",
+    sh_degree: int = 3,
+    seed: int = 0,
+    opacity: float = TSPLUS_OPACITY,
+    max_points: int | None = None,
+    num_random: int = DEFAULT_RANDOM_POINTS,
+) -> tuple[TriangleScene, InitReport]:
+    """Initial triangles for a SceneData: 'auto' = Delaunay of its points, or random points in `data.bounds`
+    when it has none; or force 'delaunay' | 'soup' | 'random'."""
+    if method not in ("auto", "delaunay", "soup", "random"):
+        raise ValueError(f"unknown initialisation method {method!r} (auto, delaunay, soup, random)")
+    has_points = data.points is not None and len(data.points) > 0
+    if method in ("delaunay", "soup") and not has_points:
+        raise ValueError(f"initialisation {method!r} needs points, but this {data.format} capture has none")
+    if method == "auto":
+        method = "delaunay" if has_points else "random"
+    if method == "delaunay":
+        return init_delaunay(data.points, data.point_colors, opacity, sh_degree, max_points, seed)
+    if method == "soup":
+        return init_soup(data.points, data.point_colors, seed=seed, opacity=opacity, sh_degree=sh_degree,
+                         max_points=max_points)
+    bounds = data.bounds
+    if bounds is None:
+        c = np.stack([cam.center for cam in data.cameras])
+        bounds = np.stack([c.min(0), c.max(0)])
+    return init_random(bounds[0], bounds[1], num_random, seed, opacity, sh_degree)
