@@ -1,0 +1,77 @@
+"""`trisplat bench`: dispatch to the suites, a clear message for a missing one, `all` and its markdown index."""
+from __future__ import annotations
+
+import json
+import sys
+import types
+
+import pytest
+
+from trisplat.bench.common import BenchTable
+from trisplat.cli import main as cli_main
+from trisplat.commands import bench
+
+
+def _fake_suite(name: str, calls: list):
+    """A suite module whose main(argv) records its argv and writes a one-row table into --out."""
+
+    def main(argv):
+        calls.append((name, list(argv)))
+        out = argv[argv.index("--out") + 1] if "--out" in argv else "bench_results"
+        t = BenchTable(f"{name}_bench", ["case", "ms"])
+        t.add(name, 1.5)
+        t.write(out, f"trisplat bench {name}")
+        return 0
+
+    mod = types.ModuleType(f"trisplat.bench.{name}")
+    mod.main = main
+    return mod
+
+
+@pytest.fixture
+def fake_suites(monkeypatch):
+    calls: list = []
+    for name in bench.SUITES:
+        monkeypatch.setitem(sys.modules, f"trisplat.bench.{name}", _fake_suite(name, calls))
+    return calls
+
+
+def test_dispatch_passes_arguments(fake_suites, tmp_path):
+    assert cli_main(["bench", "render", "--out", str(tmp_path), "--quick"]) == 0
+    assert fake_suites == [("render", ["--out", str(tmp_path), "--quick"])]
+    payload = json.loads((tmp_path / "render_bench.json").read_text())
+    assert payload["rows"] == [["render", 1.5]] and payload["machine"]["cores"] >= 1
+
+
+def test_all_runs_every_suite_and_writes_an_index(fake_suites, tmp_path):
+    assert bench.main(["all", "--out", str(tmp_path)]) == 0
+    assert [c[0] for c in fake_suites] == list(bench.SUITES)
+    index = (tmp_path / bench.INDEX_MD).read_text()
+    for name in bench.SUITES:
+        assert f"### {name}_bench" in index and f"| {name} | 1.5 |" in index
+
+
+def test_missing_suite_says_so(monkeypatch, capsys):
+    monkeypatch.setitem(bench.SUITES, "render", ("trisplat.bench.no_such_suite", "x"))
+    assert bench.main(["render"]) == 1
+    assert "the render benchmark (trisplat.bench.no_such_suite) is not available" in capsys.readouterr().err
+
+
+def test_broken_suite_is_not_reported_as_missing(monkeypatch, tmp_path):
+    # a suite that exists but fails to import one of *its* dependencies must surface that error, not hide it
+    pkg = tmp_path / "brokenbench_pkg"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    (pkg / "suite.py").write_text("import some_module_that_does_not_exist_xyz\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setitem(bench.SUITES, "mesh", ("brokenbench_pkg.suite", "x"))
+    with pytest.raises(ModuleNotFoundError, match="some_module_that_does_not_exist_xyz"):
+        bench.main(["mesh"])
+
+
+def test_usage_and_unknown_suite(capsys):
+    assert bench.main([]) == 0
+    usage = capsys.readouterr().out
+    assert all(name in usage for name in ("render", "train", "mesh", "all"))
+    assert bench.main(["fast"]) == 2
+    assert "unknown suite 'fast'" in capsys.readouterr().err

@@ -1,0 +1,89 @@
+"""`trisplat bench render|train|mesh|all [options]`: one entry for the benchmarks (JSON + markdown in --out)."""
+from __future__ import annotations
+
+import importlib
+import sys
+import time
+from pathlib import Path
+
+# subcommand -> (module with main(argv) -> int, what it measures)
+SUITES: dict[str, tuple[str, str]] = {
+    "render": ("trisplat.bench.render", "rasterizer forward/backward time and memory vs triangles and resolution"),
+    "train": ("trisplat.bench.train", "training wall time and test PSNR/SSIM/LPIPS on reference scenes"),
+    "mesh": ("trisplat.bench.mesh", "soup-to-mesh time, mesh statistics and z-buffer frames per second"),
+}
+DEFAULT_OUT = Path("bench_results")
+INDEX_MD = "index.md"
+
+
+def _usage() -> str:
+    lines = ["usage: trisplat bench {render,train,mesh,all} [options]   (trisplat bench SUITE --help for its options)",
+             "", "Each suite writes <name>.json (with machine, versions, commit) and <name>.md into --out "
+             f"(default {DEFAULT_OUT}/).", "", "suites:"]  # fmt: skip
+    lines += [f"  {name:<8} {desc}" for name, (_, desc) in SUITES.items()]
+    lines.append(f"  {'all':<8} every suite in turn with the same options; also writes --out/{INDEX_MD}")
+    return "\n".join(lines)
+
+
+def _load(name: str):
+    """The suite's module, or None (with a message on stderr) when it is not part of this installation."""
+    module = SUITES[name][0]
+    try:
+        return importlib.import_module(module)
+    except ModuleNotFoundError as exc:
+        if exc.name is not None and (module == exc.name or module.startswith(exc.name + ".")):
+            print(f"trisplat bench {name}: the {name} benchmark ({module}) is not available in this installation",
+                  file=sys.stderr)  # fmt: skip
+            return None
+        raise
+
+
+def _out_dir(argv: list[str]) -> Path:
+    for k, a in enumerate(argv):
+        if a == "--out" and k + 1 < len(argv):
+            return Path(argv[k + 1])
+        if a.startswith("--out="):
+            return Path(a.split("=", 1)[1])
+    return DEFAULT_OUT
+
+
+def write_index(out_dir: Path, since: float) -> Path | None:
+    """Concatenate the markdown tables written into out_dir since `since` (epoch s) into INDEX_MD, for docs to
+    include; None when there are none."""
+    tables = sorted(p for p in Path(out_dir).glob("*.md") if p.name != INDEX_MD and p.stat().st_mtime >= since)
+    if not tables:
+        return None
+    index = Path(out_dir) / INDEX_MD
+    index.write_text("\n\n".join(p.read_text().rstrip() for p in tables) + "\n")
+    return index
+
+
+def main(argv: list[str]) -> int:
+    if not argv or argv[0] in ("-h", "--help", "help"):
+        print(_usage())
+        return 0
+    name, rest = argv[0], argv[1:]
+    if name == "all":
+        if any(a in ("-h", "--help") for a in rest):
+            print(_usage())
+            return 0
+        start = time.time() - 1.0  # mtime resolution
+        status = 0
+        for suite in SUITES:
+            mod = _load(suite)
+            if mod is None:
+                status = status or 1
+                continue
+            print(f"== bench {suite}", file=sys.stderr)
+            status = int(mod.main(list(rest)) or 0) or status
+        index = write_index(_out_dir(rest), start)
+        if index is not None:
+            print(f"index: {index}")
+        return status
+    if name not in SUITES:
+        print(f"trisplat bench: unknown suite {name!r}\n\n{_usage()}", file=sys.stderr)
+        return 2
+    mod = _load(name)
+    if mod is None:
+        return 1
+    return int(mod.main(rest) or 0)
