@@ -18,6 +18,9 @@ class RenderOptions:
     perspective_correct: interpolate colours with perspective-correct barycentrics instead of screen-space ones.
     alpha_max: cap on per-pixel alpha (0.99). alpha_min: skip below (1/255). transmittance_min: early stop (1e-4).
     backend: 'numba' (CPU kernels) or 'reference' (dense PyTorch, the spec in code; slow, for tests).
+    min_area_px: faces whose projected area is below this (square pixels) are culled as degenerate.
+    grazing_cos: faces seen edge-on, |cos(face normal, ray to centroid)| below this (unitless), are culled.
+    reference_block: pixel block edge (pixels) of the dense reference (memory per block ~ faces x block^2).
     """
 
     near: float = 0.01
@@ -30,6 +33,9 @@ class RenderOptions:
     alpha_min: float = 1.0 / 255.0
     transmittance_min: float = 1e-4
     backend: str = "numba"
+    min_area_px: float = 1e-6
+    grazing_cos: float = 1e-4
+    reference_block: int = 32
 
 
 @dataclass

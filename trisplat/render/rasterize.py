@@ -1,0 +1,79 @@
+"""The public soft rasterizer: rasterize(...) -> RenderOutput; SH, batching, supersampling, backend dispatch."""
+from __future__ import annotations
+
+import torch
+
+from trisplat.render.inputs import make_options, validate
+from trisplat.render.types import RenderOptions, RenderOutput
+from trisplat.scene.sh import eval_sh
+
+
+def camera_center(world_to_camera: torch.Tensor) -> torch.Tensor:
+    """World position [3] of the camera centre of a [4,4] world-to-camera matrix."""
+    R, t = world_to_camera[:3, :3], world_to_camera[:3, 3]
+    return -(R.T @ t)
+
+
+def _pool(x: torch.Tensor, s: int) -> torch.Tensor:
+    """Area (box) downsampling of an [H*s, W*s, C] image by s: the gradient flows through."""
+    H, W, C = x.shape[0] // s, x.shape[1] // s, x.shape[2]
+    return x.reshape(H, s, W, s, C).mean(dim=(1, 3))
+
+
+def _render_view(positions, faces, colors, opacities, sigma, w2c, K, width, height, bg, opts: RenderOptions):
+    if colors.ndim == 3:  # SH: evaluate per vertex with the direction camera centre -> vertex
+        colors = eval_sh(colors, positions - camera_center(w2c))
+    s = opts.supersample
+    if s > 1:
+        K = K.clone()
+        K[:2] = K[:2] * s
+    W, H = width * s, height * s
+    if opts.backend == "reference":
+        from trisplat.render.reference import render_reference
+
+        out = render_reference(positions, faces, colors, opacities, sigma, w2c, K, W, H, bg, opts)
+    else:
+        from trisplat.render.splat import render_numba
+
+        out = render_numba(positions, faces, colors, opacities, sigma, w2c, K, W, H, bg, opts)
+    if s > 1:
+        out = RenderOutput(
+            rgb=_pool(out.rgb, s), alpha=_pool(out.alpha[..., None], s)[..., 0], depth=_pool(out.depth[..., None], s)[..., 0],
+            normal=_pool(out.normal, s), max_weight=out.max_weight,
+            face_id=out.face_id[s // 2::s, s // 2::s].contiguous(),
+            pairs_evaluated=out.pairs_evaluated, faces_visible=out.faces_visible)
+    return out
+
+
+def rasterize(positions, faces, colors, opacities, sigma, world_to_camera, K, width, height, background=None,
+              **options) -> RenderOutput:
+    """Render triangles softly (Triangle Splatting+ window, front-to-back alpha compositing). Differentiable.
+
+    positions float [V,3] world; faces int [F,3]; colors [V,3] RGB or [V,(d+1)^2,3] SH (evaluated per vertex with the
+    direction from the camera centre); opacities [V] in [0,1] (face opacity = min of its vertices, or mean);
+    sigma > 0 window sharpness; world_to_camera [4,4] (OpenCV axes) or [B,4,4]; K [3,3] or [B,3,3]; pixel centres
+    at +0.5; background None (black) or [3]. options: fields of RenderOptions (near, supersample, tile_size,
+    opacity_mode, perspective_correct, backend, ...). Torch tensors or numpy arrays are accepted.
+
+    Returns RenderOutput with rgb [H,W,3], alpha [H,W], depth [H,W] (expected view depth), normal [H,W,3]
+    (camera frame), max_weight [F], face_id [H,W] (int64); batched cameras add a leading B axis.
+    Gradients of rgb, alpha, depth and normal reach positions, colors (hence SH) and opacities; for
+    opacity_mode='min' the arg-min vertex of each face gets its face's opacity gradient.
+    """
+    opts = make_options(options)
+    vi = validate(positions, faces, colors, opacities, sigma, world_to_camera, K, width, height, background)
+    outs = [
+        _render_view(vi.positions, vi.faces, vi.colors, vi.opacities, vi.sigma, vi.world_to_camera[b], vi.K[b],
+                     vi.width, vi.height, vi.background, opts)
+        for b in range(vi.world_to_camera.shape[0])
+    ]
+    if not vi.batched:
+        return outs[0]
+    return RenderOutput(
+        rgb=torch.stack([o.rgb for o in outs]), alpha=torch.stack([o.alpha for o in outs]),
+        depth=torch.stack([o.depth for o in outs]), normal=torch.stack([o.normal for o in outs]),
+        max_weight=torch.stack([o.max_weight for o in outs]), face_id=torch.stack([o.face_id for o in outs]),
+        pairs_evaluated=sum(o.pairs_evaluated for o in outs), faces_visible=sum(o.faces_visible for o in outs))
+
+
+__all__ = ["rasterize", "camera_center"]
