@@ -56,6 +56,12 @@ def test_module_is_differentiable_and_batched():
     assert y.grad[0].abs().sum() > 0 and y.grad[1].abs().sum() == 0
 
 
+def test_too_small_images_are_refused():
+    with pytest.raises(ValueError, match="at least 31x31 px, got 40x30"):
+        lp.lpips(np.zeros((30, 40, 3)), np.zeros((30, 40, 3)), _weights())
+    assert lp.lpips(np.zeros((31, 31, 3)), np.zeros((31, 31, 3)), _weights()) == 0.0
+
+
 def test_missing_weights_say_how_to_get_them(tmp_path, monkeypatch):
     missing = tmp_path / "nowhere" / "w.npz"
     with pytest.raises(FileNotFoundError) as exc:

@@ -21,6 +21,7 @@ import torch.nn.functional as F
 WEIGHTS_ENV = "TRISPLAT_LPIPS_WEIGHTS"
 WEIGHTS_FILENAME = "lpips_alexnet_full_oihw.npz"
 DEFAULT_WEIGHTS = Path("~/.cache/trisplat") / WEIGHTS_FILENAME
+MIN_SIZE_PX = 31  # smallest image edge, pixels, for which AlexNet's fifth tap is non-empty
 NORM_EPS = 1e-10  # added to the channel norm of each feature tap before dividing (as in the reference)
 
 # The reference "ScalingLayer": (x - shift) / scale, per RGB channel, applied to inputs in [-1, 1].
@@ -109,6 +110,9 @@ class LPIPS(torch.nn.Module):
     def forward(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
         if x.shape != y.shape or x.ndim != 4 or x.shape[1] != 3:
             raise ValueError(f"LPIPS expects two [B,3,H,W] tensors, got {tuple(x.shape)} and {tuple(y.shape)}")
+        if min(x.shape[2:]) < MIN_SIZE_PX:
+            raise ValueError(f"LPIPS-AlexNet needs images of at least {MIN_SIZE_PX}x{MIN_SIZE_PX} px, "
+                             f"got {x.shape[3]}x{x.shape[2]}")
         total = x.new_zeros(x.shape[0])
         for i, (fx, fy) in enumerate(zip(self.features(x), self.features(y))):
             nx = fx / (fx.square().sum(1, keepdim=True).sqrt() + NORM_EPS)
@@ -134,8 +138,8 @@ def lpips(a, b, weights: str | Path | None = None) -> float:
 
     Images are scaled to [-1,1] as the reference does. Raises FileNotFoundError (with instructions) without weights.
     """
-    x, y = (torch.as_tensor(np.asarray(t.detach().cpu() if isinstance(t, torch.Tensor) else t), dtype=torch.float32)
-            for t in (a, b))  # fmt: skip
+    x, y = (t.detach().to("cpu", torch.float32) if isinstance(t, torch.Tensor)
+            else torch.from_numpy(np.array(t, dtype=np.float32)) for t in (a, b))  # fmt: skip
     for name, t in (("image a", x), ("image b", y)):
         if t.ndim != 3 or t.shape[2] != 3:
             raise ValueError(f"{name} must be an [H,W,3] image, got shape {tuple(t.shape)}")

