@@ -177,6 +177,7 @@ def extract_faces(
     min_pixels: int = 1,
     fill_hidden: bool = False,
     opacities=None,
+    sigma: float = SOFT_SIGMA,
     return_votes: bool = False,
 ):
     """Faces of the masked object: bool [F].
@@ -186,7 +187,7 @@ def extract_faces(
     ratio: selected when (masked pixels showing the face) / (all masked-view pixels showing it) >= ratio, in (0, 1].
     min_pixels: a face must be shown by at least this many pixels (over all masked views) to be selected.
     Faces no masked view shows stay unselected, unless fill_hidden (see fill_hidden_faces).
-    renderer: how face ids are made (see face_id_maps). return_votes: also return the FaceVotes.
+    renderer, opacities, sigma: how face ids are made (see face_id_maps). return_votes: also return the FaceVotes.
     """
     if not 0.0 < ratio <= 1.0:
         raise ValueError(f"ratio must be in (0, 1], got {ratio}")
@@ -204,7 +205,7 @@ def extract_faces(
             raise ValueError(f"mask for camera {i} ({cam.name or cam.image_path}) is {m.shape[1]}x{m.shape[0]} "
                              f"pixels, its image is {cam.width}x{cam.height}")
     views = [cameras[i] for i in idx]
-    ids = list(face_id_maps(positions, faces, views, renderer, opacities=opacities))
+    ids = list(face_id_maps(positions, faces, views, renderer, opacities=opacities, sigma=sigma))
     votes = count_votes(ids, [np.asarray(masks[i], bool) for i in idx], len(faces))
     total = votes.inside + votes.outside
     selected = (total >= min_pixels) & (votes.inside >= ratio * total) & (total > 0)

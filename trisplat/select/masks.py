@@ -60,11 +60,13 @@ def _camera_stem(cam: Camera) -> str:
     return cam.image_path.stem if cam.image_path is not None else cam.name
 
 
-def match_masks(mask_dir: str | Path, cameras: Sequence[Camera],
-                candidates: Sequence[int] | None = None) -> dict[int, np.ndarray]:
+def match_masks(mask_dir: str | Path, cameras: Sequence[Camera], candidates: Sequence[int] | None = None,
+                preferred: Sequence[int] | None = None) -> dict[int, np.ndarray]:
     """Read every PNG in `mask_dir` and assign it to the camera whose image has the same file stem.
 
-    candidates: camera indices allowed to match (e.g. the training views; default all). Returns camera index ->
+    candidates: camera indices allowed to match (default all). preferred: when a stem names several views (Blender
+    captures have train/r_0 and test/r_0), the one among these indices (e.g. the training views) wins; a stem that
+    is still ambiguous is an error. Returns camera index ->
     bool [H,W] mask at that camera's resolution. Errors name the files: no masks, a name matching no view (with
     examples of view names), a name matching several views, wrong size, empty mask.
     """
@@ -87,6 +89,9 @@ def match_masks(mask_dir: str | Path, cameras: Sequence[Camera],
     out: dict[int, np.ndarray] = {}
     for p in files:
         hits = by_stem[p.stem]
+        if len(hits) > 1 and preferred is not None:
+            pref = set(int(i) for i in preferred)
+            hits = [i for i in hits if i in pref] if sum(i in pref for i in hits) == 1 else hits
         if len(hits) > 1:
             names = ", ".join(str(cameras[i].image_path or cameras[i].name) for i in hits)
             raise ValueError(f"{p}: stem {p.stem!r} matches {len(hits)} views ({names}); rename the images or masks")
