@@ -251,7 +251,8 @@ def load_dataset(path, downscale: int = 1, **options) -> SceneData:
     todo = [i for i, p in enumerate(jobs) if (p.target != p.view.image_path and not p.target.exists())
             or (p.depth_target is not None and not p.depth_target.exists())]
     if opts.prepare == "eager" and todo:
-        what = "undistorting + downscaling" if any(jobs[i].view.camera.needs_undistortion for i in todo) else "downscaling"
+        undist = any(jobs[i].view.camera.needs_undistortion for i in todo)
+        what = " + ".join(w for w, on in (("undistorting", undist), (f"downscaling x{d}", d > 1)) if on)
         for i in tqdm(todo, desc=f"{what} {len(todo)} images -> {cache}", unit="img", leave=False):
             ensure(i)
 
