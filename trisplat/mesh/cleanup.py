@@ -1,0 +1,171 @@
+"""Mesh cleanup: weld coincident vertices, drop degenerate and duplicate faces, orient, remove small fragments.
+
+Every step keeps index maps so a caller can carry per-vertex attributes (SH, opacity) along:
+`new_attr = old_attr[result.vertex_source]` and per-face ones with `result.face_source`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+from trisplat.mesh.orient import orient_faces
+
+
+@dataclass(frozen=True)
+class CleanupConfig:
+    """Cleanup settings. Lengths in the mesh's units."""
+
+    weld_tolerance: float = 0.0
+    """vertices closer than this are merged into one (scene units); 0 merges only exactly equal positions."""
+    min_face_area: float = 0.0
+    """faces with area <= this are degenerate and dropped (scene units^2); faces repeating a vertex always are."""
+    drop_duplicate_faces: bool = True
+    """drop faces using the same three vertices as an earlier face (either winding)."""
+    orient: bool = True
+    """flip faces so neighbours agree (outward on closed pieces)."""
+    min_component_faces: int = 0
+    """drop vertex-connected pieces with fewer faces than this (count); 0 keeps all."""
+    min_component_area_fraction: float = 0.0
+    """drop pieces whose area is below this fraction of the total area (dimensionless, 0..1); 0 keeps all."""
+    drop_unreferenced_vertices: bool = True
+    """compact the vertex table to the vertices some face uses; False keeps every (welded) vertex."""
+
+
+@dataclass
+class CleanupResult:
+    """Output of `clean_mesh`.
+
+    vertices: float [V',3]; faces: int32 [F',3].
+    vertex_source: int64 [V'] input vertex each output vertex comes from (the lowest index of a welded group).
+    vertex_map: int64 [V] output vertex of each input vertex, -1 when dropped.
+    face_source: int64 [F'] input face each output face comes from.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    vertex_source: np.ndarray
+    vertex_map: np.ndarray
+    face_source: np.ndarray
+    num_welded: int = 0  # input vertices merged into another
+    num_degenerate_faces: int = 0
+    num_duplicate_faces: int = 0
+    num_fragment_faces: int = 0  # faces removed with small pieces
+    num_fragments: int = 0  # pieces removed
+    num_flipped: int = 0
+    num_unreferenced_vertices: int = 0  # dropped (or, when kept, present) vertices no face uses
+
+
+def weld_vertices(vertices: np.ndarray, tolerance: float = 0.0) -> np.ndarray:
+    """Representative (lowest index) of each vertex's group, int64 [V]: groups are the connected components of
+    "closer than `tolerance`" (exactly equal positions when tolerance is 0)."""
+    v = np.asarray(vertices, dtype=np.float64)
+    V = len(v)
+    if V == 0:
+        return np.zeros(0, np.int64)
+    if tolerance < 0:
+        raise ValueError(f"weld_tolerance must be >= 0, got {tolerance}")
+    if tolerance == 0:
+        _, first, inverse = np.unique(v, axis=0, return_index=True, return_inverse=True)
+        return first[inverse.reshape(-1)].astype(np.int64)
+    pairs = cKDTree(v).query_pairs(tolerance, output_type="ndarray")
+    graph = sp.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(V, V))
+    _, labels = connected_components(graph, directed=False)
+    rep = np.full(labels.max() + 1, V, np.int64)
+    np.minimum.at(rep, labels, np.arange(V))
+    return rep[labels]
+
+
+def face_components(faces: np.ndarray, num_vertices: int) -> tuple[int, np.ndarray]:
+    """Vertex-connected pieces: (count, label int64 [F] per face)."""
+    faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    if len(faces) == 0:
+        return 0, np.zeros(0, np.int64)
+    a = faces[:, [0, 1]].reshape(-1)
+    b = faces[:, [1, 2]].reshape(-1)
+    graph = sp.coo_matrix((np.ones(len(a)), (a, b)), shape=(num_vertices, num_vertices))
+    _, labels = connected_components(graph, directed=False)
+    used, lab = np.unique(labels[faces[:, 0]], return_inverse=True)
+    return len(used), lab.reshape(-1).astype(np.int64)
+
+
+def face_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    tri = np.asarray(vertices, dtype=np.float64)[np.asarray(faces, dtype=np.int64).reshape(-1, 3)]
+    return 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+
+
+def clean_mesh(vertices: np.ndarray, faces: np.ndarray, config: CleanupConfig = CleanupConfig()) -> CleanupResult:
+    """Apply the cleanup steps of `config` in order: weld, drop degenerate, drop duplicates, remove fragments,
+    orient, compact. vertices [V,3]; faces int [F,3]."""
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces)
+    if v.ndim != 2 or v.shape[1] != 3:
+        raise ValueError(f"vertices must be [V,3], got shape {v.shape}")
+    if f.ndim != 2 or f.shape[1] != 3:
+        raise ValueError(f"faces must be [F,3], got shape {f.shape}")
+    f = f.astype(np.int64)
+    V = len(v)
+    if f.size and (f.min() < 0 or f.max() >= V):
+        raise ValueError(f"face index out of range [0, {V}): min {f.min()}, max {f.max()}")
+    if not 0.0 <= config.min_component_area_fraction <= 1.0:
+        raise ValueError(f"min_component_area_fraction must be in [0, 1], got {config.min_component_area_fraction}")
+    face_src = np.arange(len(f), dtype=np.int64)
+
+    rep = weld_vertices(v, config.weld_tolerance)
+    num_welded = int(np.count_nonzero(rep != np.arange(V)))
+    f = rep[f]
+
+    area = face_areas(v, f)
+    degenerate = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2]) | (area <= config.min_face_area)
+    f, face_src, area = f[~degenerate], face_src[~degenerate], area[~degenerate]
+
+    num_dup = 0
+    if config.drop_duplicate_faces and len(f):
+        _, first = np.unique(np.sort(f, axis=1), axis=0, return_index=True)
+        first = np.sort(first)
+        num_dup = len(f) - len(first)
+        f, face_src, area = f[first], face_src[first], area[first]
+
+    num_frag_faces = num_frags = 0
+    if (config.min_component_faces > 0 or config.min_component_area_fraction > 0) and len(f):
+        n_comp, label = face_components(f, V)
+        comp_faces = np.bincount(label, minlength=n_comp)
+        comp_area = np.bincount(label, weights=area, minlength=n_comp)
+        small = (comp_faces < config.min_component_faces) | (
+            comp_area < config.min_component_area_fraction * max(area.sum(), 0.0))
+        drop = small[label]
+        num_frags, num_frag_faces = int(small.sum()), int(drop.sum())
+        f, face_src = f[~drop], face_src[~drop]
+
+    num_flipped = 0
+    if config.orient and len(f):
+        f, orep = orient_faces(v, f)
+        f = f.astype(np.int64)
+        num_flipped = orep.num_flipped
+
+    used = np.zeros(V, bool)
+    used[f.reshape(-1)] = True
+    is_rep = rep == np.arange(V)
+    keep_v = used if config.drop_unreferenced_vertices else is_rep
+    vertex_source = np.nonzero(keep_v)[0].astype(np.int64)
+    new_index = np.full(V, -1, np.int64)
+    new_index[vertex_source] = np.arange(len(vertex_source))
+    vertex_map = new_index[rep]
+    return CleanupResult(
+        vertices=v[vertex_source].astype(np.asarray(vertices).dtype if np.asarray(vertices).dtype.kind == "f"
+                                         else np.float64),
+        faces=new_index[f].astype(np.int32).reshape(-1, 3),
+        vertex_source=vertex_source,
+        vertex_map=vertex_map,
+        face_source=face_src,
+        num_welded=num_welded,
+        num_degenerate_faces=int(degenerate.sum()),
+        num_duplicate_faces=num_dup,
+        num_fragment_faces=num_frag_faces,
+        num_fragments=num_frags,
+        num_flipped=num_flipped,
+        num_unreferenced_vertices=int(np.count_nonzero(is_rep & ~used)),
+    )
