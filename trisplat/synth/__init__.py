@@ -2,12 +2,13 @@
 from trisplat.synth.blender import write_blender_scene
 from trisplat.synth.orbit import look_at, orbit_cameras
 from trisplat.synth.raycast import RayCastView, Shading, raycast_view, render_face_ids, render_views
-from trisplat.synth.scenes import DEMO_SHADING, demo_mesh, spot_mesh, two_object_mesh
+from trisplat.synth.scenes import DEMO_SHADING, bake_shading, demo_mesh, spot_mesh, two_object_mesh
 from trisplat.synth.surface import surface_colors
 
 __all__ = [
     "DEMO_SHADING",
     "RayCastView",
+    "bake_shading",
     "Shading",
     "demo_mesh",
     "look_at",

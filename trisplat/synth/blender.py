@@ -43,6 +43,7 @@ class BlenderSceneInfo:
     shading: dict | None
     seed: int
     n_points: int
+    object_bounds: tuple[tuple[float, float, float], tuple[float, float, float]]
 
 
 def camera_to_blender_matrix(camera: Camera) -> np.ndarray:
@@ -129,7 +130,7 @@ def write_blender_scene(
             out / "points3d.ply")
     info = BlenderSceneInfo(n_train, n_test, width, height, fov_deg, float(radius), tuple(float(c) for c in center),
                             tuple(elevation_deg), samples_per_pixel, asdict(shading) if shading else None, seed,
-                            n_points)
+                            n_points, tuple(tuple(float(x) for x in b) for b in mesh.bounds))
     (out / "synth.json").write_text(json.dumps(asdict(info), indent=2))
     return out
 

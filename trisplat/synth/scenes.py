@@ -104,11 +104,26 @@ def _gradient_cylinder(center, radius: float, height: float, hue: float) -> trim
     return c
 
 
-def demo_mesh(seed: int = 0) -> trimesh.Trimesh:
-    """The built-in procedural scene (z-up, about 2.4 units wide, ~4k faces, vertex colours).
+def bake_shading(mesh: trimesh.Trimesh, shading: Shading) -> trimesh.Trimesh:
+    """A copy whose vertex colours carry `shading`'s fixed light at each vertex (Lambert on the vertex normal):
+    the unlit render of the result looks lit, and per-vertex colour can represent it exactly."""
+    if mesh.visual.kind != "vertex":
+        raise ValueError(f"bake_shading needs vertex colours, the mesh has {mesh.visual.kind!r} visuals")
+    light = np.asarray(shading.light_dir, dtype=np.float64)
+    light = light / np.linalg.norm(light)
+    k = shading.ambient + (1.0 - shading.ambient) * np.clip(mesh.vertex_normals @ light, 0.0, None)
+    out = trimesh.Trimesh(mesh.vertices.copy(), mesh.faces.copy(), process=False)
+    out.visual.vertex_colors = _rgba(mesh.visual.vertex_colors[:, :3] / 255.0 * k[:, None])
+    return out
+
+
+def demo_mesh(seed: int = 0, shaded: bool = True) -> trimesh.Trimesh:
+    """The built-in procedural scene (z-up, about 2.4 units wide, 0.8 high, ~3k faces, vertex colours).
 
     A striped upright torus, a cube with six flat colours, a banded gradient icosphere and a gradient cylinder on a
     checkered ground disk of radius 1.2 at z = 0. `seed` rotates the arrangement about z and shifts the hues.
+    shaded: bake DEMO_SHADING's fixed light into the vertex colours (view independent), so shapes read clearly in
+    an unlit render; False gives the flat albedo.
     """
     rng = np.random.default_rng(seed)
     hue = float(rng.uniform(0, 1)) if seed else 0.0
@@ -122,7 +137,7 @@ def demo_mesh(seed: int = 0) -> trimesh.Trimesh:
     mesh = trimesh.util.concatenate(parts)
     if seed:
         mesh.apply_transform(trimesh.transformations.rotation_matrix(float(rng.uniform(0, 2 * math.pi)), [0, 0, 1]))
-    return mesh
+    return bake_shading(mesh, DEMO_SHADING) if shaded else mesh
 
 
 def two_object_mesh(ground: bool = False) -> tuple[trimesh.Trimesh, np.ndarray]:
