@@ -1,7 +1,8 @@
 """Geometry metrics between a predicted surface and ground truth: Chamfer (DTU style), F-score, normal consistency.
 
 Both surfaces are turned into point samples: a mesh is sampled area-uniformly with a fixed seed (trimesh.sample),
-a point cloud is used as is (randomly subsampled with the seed when it has more points than asked). Distances are
+a point cloud is used as is (randomly subsampled with the seed when it has more points than asked). Both sides use
+the same seed, so a mesh compared with itself (or with a copy moved by d along its normal) gets exactly 0 (or d). Distances are
 nearest-neighbour distances between the two sample sets (scipy KD-tree), in the surfaces' units:
 accuracy = mean distance pred -> gt, completeness = mean distance gt -> pred, chamfer = their mean;
 precision / recall = fraction of pred / gt samples within `threshold` of the other set, fscore their harmonic mean.
@@ -99,7 +100,7 @@ def compare_surfaces(pred: Surface, gt: Surface, threshold: float | None = None,
     if not threshold > 0:
         raise ValueError(f"F-score threshold must be positive, got {threshold}")
     p, pn = sample_surface(pred, samples, seed)
-    g, gn = sample_surface(gt, samples, seed + 1)
+    g, gn = sample_surface(gt, samples, seed)
     d_pg, i_pg = cKDTree(g).query(p, workers=-1)
     d_gp, i_gp = cKDTree(p).query(g, workers=-1)
     acc, comp = float(d_pg.mean()), float(d_gp.mean())

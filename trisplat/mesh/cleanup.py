@@ -19,6 +19,8 @@ from trisplat.mesh.orient import orient_faces
 class CleanupConfig:
     """Cleanup settings. Lengths in the mesh's units."""
 
+    weld: bool = True
+    """merge coincident vertices (see weld_tolerance); False leaves the vertex table as it is."""
     weld_tolerance: float = 0.0
     """vertices closer than this are merged into one (scene units); 0 merges only exactly equal positions."""
     min_face_area: float = 0.0
@@ -114,7 +116,7 @@ def clean_mesh(vertices: np.ndarray, faces: np.ndarray, config: CleanupConfig = 
         raise ValueError(f"min_component_area_fraction must be in [0, 1], got {config.min_component_area_fraction}")
     face_src = np.arange(len(f), dtype=np.int64)
 
-    rep = weld_vertices(v, config.weld_tolerance)
+    rep = weld_vertices(v, config.weld_tolerance) if config.weld else np.arange(V, dtype=np.int64)
     num_welded = int(np.count_nonzero(rep != np.arange(V)))
     f = rep[f]
 
