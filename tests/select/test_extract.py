@@ -153,3 +153,16 @@ def test_split_mesh_partitions_faces_and_compacts_vertices():
         np.testing.assert_allclose(part.colors, colors[part.vertex_index])
         assert len(np.unique(part.faces)) == len(part.positions)  # no unused vertices
     assert len(obj.positions) == len(np.unique(mesh.faces[label == 1]))
+
+
+def test_soft_renderer_face_ids_agree_with_ray_casting(scene):
+    """The splatting renderer at a near-zero sigma shows the same faces as a z-buffer (ray casting), so extraction
+    through it finds the object too."""
+    pytest.importorskip("trisplat.render")
+    mesh, label, cams, masks = scene
+    soft = list(face_id_maps(mesh.vertices, mesh.faces, cams[:3], renderer="soft"))
+    ref = list(face_id_maps(mesh.vertices, mesh.faces, cams[:3], renderer="raycast"))
+    for s, r in zip(soft, ref):
+        assert (s == r).mean() >= 0.99
+    sel = extract_faces(mesh.vertices, mesh.faces, cams, masks, renderer="soft")
+    assert _iou(sel, label == OBJECT) >= MIN_IOU

@@ -68,6 +68,13 @@ def test_demo_and_two_object_meshes():
     c = mesh.triangles_center
     assert (np.einsum("ij,ij->i", mesh.face_normals[label == 1], c[label == 1] - [-0.35, 0, 0]) > 0).all()
     assert (np.einsum("ij,ij->i", mesh.face_normals[label == 2], c[label == 2] - [0.4, 0, 0]) > 0).all()
+    # the baked light: ground vertices (normal +z) are their albedo times ambient + (1 - ambient) * light_z
+    flat, lit = demo_mesh(shaded=False), demo_mesh()
+    ground = np.nonzero(flat.vertex_normals[:, 2] > 0.999)[0]
+    light = np.asarray(DEMO_SHADING.light_dir) / np.linalg.norm(DEMO_SHADING.light_dir)
+    k = DEMO_SHADING.ambient + (1 - DEMO_SHADING.ambient) * light[2]
+    np.testing.assert_allclose(lit.visual.vertex_colors[ground, :3],
+                               np.round(flat.visual.vertex_colors[ground, :3] * k), atol=1)
     _, label_g = two_object_mesh(ground=True)
     assert set(np.unique(label_g)) == {0, 1, 2}
 
