@@ -1,0 +1,53 @@
+"""`trisplat view RUN|MESH`: serve a local web viewer (mesh, cameras, ground-truth photos) and open it in a browser."""
+from __future__ import annotations
+
+import webbrowser
+from dataclasses import dataclass
+from pathlib import Path
+
+import tyro
+
+from trisplat.io.mesh_files import FORMATS
+
+
+@dataclass
+class ViewConfig:
+    """Show a trained run (its mesh in the capture frame, the training cameras as frusta, the photos) or a mesh
+    file (.ply/.obj/.glb) in the browser. Orbit or walk (WASD) around; N jumps to the nearest training camera and G
+    toggles between the mesh and that camera's ground-truth photo. Ctrl-C stops the server."""
+
+    target: tyro.conf.Positional[Path]
+    """run folder written by `trisplat train`, or a mesh file"""
+    port: int = 8080
+    """port on 127.0.0.1 (0 picks a free one)"""
+    no_browser: bool = False
+    """only print the address; do not open a browser"""
+    verbose: bool = False
+    """log every HTTP request"""
+
+
+def main(argv: list[str]) -> int:
+    from trisplat.viewer.data import viewer_data_from_mesh, viewer_data_from_run
+    from trisplat.viewer.server import ViewerServer
+
+    cfg = tyro.cli(ViewConfig, args=argv, description=__doc__)
+    if cfg.target.is_dir():
+        data = viewer_data_from_run(cfg.target)
+    elif cfg.target.suffix.lower() in FORMATS:
+        data = viewer_data_from_mesh(cfg.target)
+    else:
+        raise FileNotFoundError(
+            f"{cfg.target}: neither a run folder nor a mesh file ({', '.join(FORMATS)})"
+        )
+    try:
+        server = ViewerServer(data, port=cfg.port, quiet=not cfg.verbose)
+    except OSError as exc:
+        raise ValueError(f"cannot listen on 127.0.0.1:{cfg.port} ({exc.strerror}); pick another --port") from exc
+    print(f"trisplat view: {len(data.faces):,} faces, {len(data.cameras)} cameras at {server.url}  (Ctrl-C stops)")
+    if not cfg.no_browser:
+        webbrowser.open(server.url)
+    try:
+        server.serve_forever()
+    finally:
+        server.server_close()
+    return 0

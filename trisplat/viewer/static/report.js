@@ -1,0 +1,16 @@
+// Sends console errors and uncaught exceptions to the local server (/api/report), so headless tests see them.
+(function () {
+  function report(kind, message) {
+    try {
+      fetch('/api/report', { method: 'POST', headers: { 'Content-Type': 'application/json' },
+        body: JSON.stringify({ kind: kind, message: String(message).slice(0, 2000) }) });
+    } catch (e) { /* the page still works without the server's log */ }
+  }
+  window.trisplatReport = function (obj) {
+    fetch('/api/report', { method: 'POST', headers: { 'Content-Type': 'application/json' }, body: JSON.stringify(obj) });
+  };
+  const consoleError = console.error.bind(console);
+  console.error = function (...args) { report('error', args.join(' ')); consoleError(...args); };
+  window.addEventListener('error', (e) => report('error', (e.message || 'error') + ' at ' + (e.filename || '') + ':' + (e.lineno || '')));
+  window.addEventListener('unhandledrejection', (e) => report('error', 'unhandled rejection: ' + (e.reason && e.reason.stack || e.reason)));
+})();
