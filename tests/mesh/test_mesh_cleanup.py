@@ -1,0 +1,99 @@
+"""Cleanup steps with index maps; connect_scene keeps vertices and attributes and replaces faces."""
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from trisplat.mesh.cleanup import CleanupConfig, clean_mesh, weld_vertices
+from trisplat.mesh.stats import mesh_statistics
+
+
+def test_weld_exact_and_with_tolerance():
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 0, 0], [0, 1, 1e-7], [1, 1, 0.0]])
+    assert weld_vertices(v).tolist() == [0, 1, 2, 1, 4, 5]
+    assert weld_vertices(v, 1e-6).tolist() == [0, 1, 2, 1, 2, 5]
+    # an unwelded square (two triangles, six vertices) becomes 4 vertices sharing an edge
+    f = np.array([[0, 1, 2], [3, 5, 4]])
+    attr = np.arange(6) * 10.0
+    r = clean_mesh(v, f, CleanupConfig(weld_tolerance=1e-6))
+    assert len(r.vertices) == 4 and r.num_welded == 2
+    assert r.vertex_source.tolist() == [0, 1, 2, 5]
+    assert r.vertex_map.tolist() == [0, 1, 2, 1, 2, 3]
+    assert np.array_equal(r.vertices, v[r.vertex_source])
+    assert attr[r.vertex_source].tolist() == [0, 10, 20, 50]
+    s = mesh_statistics(r.vertices, r.faces)
+    assert s.num_edges == 5 and s.boundary_edges == 4 and s.consistently_oriented
+    with pytest.raises(ValueError, match="weld_tolerance"):
+        weld_vertices(v, -1.0)
+
+
+def test_degenerate_duplicate_and_face_source():
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [2, 0, 0], [1, 1, 0.0]])
+    f = np.array([[0, 1, 2], [0, 0, 1], [0, 1, 3], [2, 1, 0], [1, 4, 2], [1, 4, 2]])
+    r = clean_mesh(v, f, CleanupConfig(orient=False))
+    assert r.num_degenerate_faces == 2  # repeated vertex; collinear (zero area)
+    assert r.num_duplicate_faces == 2  # reversed copy of face 0; exact copy of face 4
+    assert r.face_source.tolist() == [0, 4]
+    assert np.array_equal(r.vertices[r.faces], v[f[r.face_source]])
+    assert r.num_unreferenced_vertices == 1 and len(r.vertices) == 4
+    kept_all = clean_mesh(v, f, CleanupConfig(orient=False, drop_unreferenced_vertices=False))
+    assert len(kept_all.vertices) == 5 and kept_all.vertex_source.tolist() == [0, 1, 2, 3, 4]
+
+
+def test_small_fragments_removed_by_count_and_area():
+    big = trimesh.creation.icosphere(2)  # 320 faces, area ~12.5
+    small = trimesh.creation.icosphere(0, radius=0.1)  # 20 faces, area ~0.12
+    v = np.concatenate([big.vertices, small.vertices + 5])
+    f = np.concatenate([big.faces, small.faces + len(big.vertices)])
+    r = clean_mesh(v, f, CleanupConfig(min_component_faces=21))
+    assert len(r.faces) == 320 and r.num_fragments == 1 and r.num_fragment_faces == 20
+    assert r.vertex_source.max() < len(big.vertices)
+    r = clean_mesh(v, f, CleanupConfig(min_component_area_fraction=0.02))
+    assert len(r.faces) == 320
+    r = clean_mesh(v, f, CleanupConfig(min_component_area_fraction=0.005))
+    assert len(r.faces) == 340
+
+
+def test_orientation_repaired_outward():
+    s = trimesh.creation.icosphere(3)
+    rng = np.random.default_rng(1)
+    f = s.faces.copy()
+    flip = rng.random(len(f)) < 0.3
+    f[flip] = f[flip][:, ::-1]
+    assert not mesh_statistics(s.vertices, f).consistently_oriented
+    r = clean_mesh(s.vertices, f)
+    assert r.num_flipped == flip.sum()
+    assert np.array_equal(r.faces, s.faces)  # exactly the outward original
+    # fully inverted sphere: every face flipped back
+    r = clean_mesh(s.vertices, s.faces[:, ::-1])
+    assert r.num_flipped == len(s.faces) and np.array_equal(r.faces, s.faces)
+
+
+def test_connect_scene_keeps_vertices_and_replaces_faces():
+    from trisplat.mesh.connect import ConnectConfig, connect_scene
+    from trisplat.scene.model import TriangleScene
+
+    sphere = trimesh.creation.icosphere(3)
+    pts, _ = trimesh.sample.sample_surface_even(sphere, 800, seed=0)
+    # a soup: one small triangle around each point, lying in the tangent plane, as a trained soup would be
+    rng = np.random.default_rng(0)
+    n = pts / np.linalg.norm(pts, axis=1, keepdims=True)
+    t1 = np.cross(n, rng.normal(size=(len(pts), 3)))
+    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+    t2 = np.cross(n, t1)
+    r = 0.12
+    corners = np.stack([pts + r * t1, pts + r * (-0.5 * t1 + 0.87 * t2), pts + r * (-0.5 * t1 - 0.87 * t2)], 1)
+    positions = corners.reshape(-1, 3)
+    faces = np.arange(len(positions)).reshape(-1, 3)
+    scene = TriangleScene.from_rgb(positions, faces, rng.random((len(positions), 3)), sh_degree=1)
+    scene.opacity_logit.uniform_(-2, 2)
+    out, rep = connect_scene(scene)
+    assert out.positions is scene.positions and out.sh is scene.sh and out.opacity_logit is scene.opacity_logit
+    assert out.faces.dtype == torch.int32 and out.num_faces == rep.num_faces > 0
+    s = mesh_statistics(positions, out.faces.numpy())
+    assert s.non_manifold_edges <= 0.01 * s.num_edges and s.consistently_oriented
+    assert s.vertex_face_ratio < 1.0  # connected: far below a soup's 3.0
+    compact, rep2 = connect_scene(scene, ConnectConfig(drop_unreferenced_vertices=True))
+    assert compact.num_vertices == len(np.unique(out.faces.numpy()))
+    assert torch.equal(compact.sh, scene.sh[torch.as_tensor(rep2.vertex_source)])
+    assert torch.equal(compact.positions[compact.faces.long()], scene.positions[out.faces.long()])
