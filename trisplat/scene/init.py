@@ -239,7 +239,7 @@ def initial_scene(
     seed: int = 0,
     opacity: float = TSPLUS_OPACITY,
     max_points: int | None = None,
-    num_random: int = DEFAULT_RANDOM_POINTS,
+    random_points: int = DEFAULT_RANDOM_POINTS,
 ) -> tuple[TriangleScene, InitReport]:
     """Initial triangles for a SceneData: 'auto' = Delaunay of its points, or random points in `data.bounds`
     when it has none; or force 'delaunay' | 'soup' | 'random'."""
@@ -259,4 +259,4 @@ def initial_scene(
     if bounds is None:
         c = np.stack([cam.center for cam in data.cameras])
         bounds = np.stack([c.min(0), c.max(0)])
-    return init_random(bounds[0], bounds[1], num_random, seed, opacity, sh_degree)
+    return init_random(bounds[0], bounds[1], random_points, seed, opacity, sh_degree)
