@@ -1,9 +1,13 @@
 """Unlit surface colour of a trimesh at surface points: vertex colours, face colours, or a UV texture."""
 from __future__ import annotations
 
+import weakref
+
 import numpy as np
 import trimesh
 from scipy import ndimage
+
+_TEXTURES: dict[int, np.ndarray] = {}  # id(PIL image) -> float32 array, converted once, dropped with the image
 
 
 def barycentric(mesh: trimesh.Trimesh, face_idx: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -24,7 +28,12 @@ def _texture_image(mesh: trimesh.Trimesh) -> np.ndarray:
         img = getattr(mat, "baseColorTexture", None)
     if img is None:
         raise ValueError("mesh has UV coordinates but its material carries no texture image")
-    return np.asarray(img.convert("RGB"), dtype=np.float32) / 255.0
+    arr = _TEXTURES.get(id(img))
+    if arr is None:
+        arr = np.asarray(img.convert("RGB"), dtype=np.float32) / 255.0
+        _TEXTURES[id(img)] = arr
+        weakref.finalize(img, _TEXTURES.pop, id(img), None)
+    return arr
 
 
 def sample_texture(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
