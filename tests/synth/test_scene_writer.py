@@ -131,3 +131,28 @@ def test_blender_scene_loads_through_load_dataset(tmp_path):
         img = scene.load_image(int(i))
         ref = raycast_view(mesh, cam, background=scene.background).rgba[..., :3]
         np.testing.assert_allclose(img, ref, atol=1.0 / 255 + 1e-6)
+
+
+def test_spot_mesh_is_textured_and_z_up():
+    from conftest import shared_data
+
+    from trisplat.synth import spot_mesh
+
+    obj = shared_data("meshes") / "spot_triangulated.obj"
+    raw = trimesh.load(obj, process=False, force="mesh")
+    spot = spot_mesh(obj)
+    assert spot.visual.kind == "texture" and spot.visual.material.image.size == (1024, 1024)
+    # +90 degrees about x: the original y (up) becomes z, the original z becomes -y
+    np.testing.assert_allclose(spot.vertices, np.c_[raw.vertices[:, 0], -raw.vertices[:, 2], raw.vertices[:, 1]],
+                               atol=1e-12)
+    np.testing.assert_array_equal(spot.faces, raw.faces)
+    # a render shows the texture: the pixel colours come from its palette (white hide, black patches, pink nose)
+    cam = orbit_cameras(1, 3.5, 64, 64, 40, center=spot.bounds.mean(0), seed=0)[0]
+    rgba = raycast_view(spot, cam).rgba
+    hit = rgba[..., 3] == 1
+    assert hit.mean() > 0.1
+    tex = np.asarray(spot.visual.material.image.convert("RGB"), np.float32)[::8, ::8].reshape(-1, 3) / 255
+    d = np.linalg.norm(rgba[hit][:, None, :3] - tex[None], axis=-1).min(1)
+    assert np.median(d) < 0.02
+    with pytest.raises(FileNotFoundError, match="Spot mesh not found"):
+        spot_mesh(obj.with_name("nope.obj"))
