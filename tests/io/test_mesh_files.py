@@ -108,8 +108,11 @@ def test_estimate_capture_up_from_upright_cameras():
         w2c = np.eye(4)
         w2c[:3, :3], w2c[:3, 3] = R, -R @ centre
         cams.append(Camera(w2c, np.diag([100.0, 100.0, 1.0]), 64, 64))
-    up = estimate_capture_up(cams)
-    assert np.degrees(np.arccos(np.clip(up @ [0.0, 0.0, 1.0], -1, 1))) < 20.0
+    np.testing.assert_array_equal(estimate_capture_up(cams), [0.0, 0.0, 1.0])  # snapped onto the axis
+    tilted = np.eye(4)
+    tilted[:3, :3] = trimesh.transformations.rotation_matrix(np.radians(30), [1, 0, 0])[:3, :3]
+    up = estimate_capture_up([Camera(c.world_to_camera @ tilted.T, c.K, 64, 64) for c in cams])
+    np.testing.assert_allclose(up, tilted[:3, :3] @ [0.0, 0.0, 1.0], atol=1e-9)  # 30 degrees off: kept as is
     assert estimate_capture_up([]) is None
 
 

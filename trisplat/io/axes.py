@@ -16,6 +16,9 @@ DEFAULT_CAPTURE_UP = {"y": np.array([0.0, 0.0, 1.0]), "z": np.array([0.0, 1.0, 0
 # The cameras' up vectors must agree this much (norm of their mean unit vector, 1 = all parallel) before their
 # mean is trusted as the capture's up direction; below it (e.g. cameras all around a sphere) the default is used.
 MIN_CAMERA_UP_AGREEMENT = 0.5
+# An estimate within this angle (degrees) of a coordinate axis is taken to be that axis exactly: captures made in
+# an axis-aligned frame (Blender, NeRF-synthetic, gravity-aligned COLMAP) then rotate by exact quarter turns.
+SNAP_TO_AXIS_DEG = 15.0
 
 
 def estimate_capture_up(cameras: Sequence[Camera]) -> np.ndarray | None:
@@ -23,7 +26,7 @@ def estimate_capture_up(cameras: Sequence[Camera]) -> np.ndarray | None:
 
     A camera's up is its -y axis (OpenCV: y points down in the image). Photos are mostly taken upright, so the
     mean is a good estimate; returns None when there are no cameras or they disagree (agreement below
-    MIN_CAMERA_UP_AGREEMENT).
+    MIN_CAMERA_UP_AGREEMENT). A mean within SNAP_TO_AXIS_DEG of +-X, +-Y or +-Z is returned as that axis.
     """
     if len(cameras) == 0:
         return None
@@ -32,7 +35,13 @@ def estimate_capture_up(cameras: Sequence[Camera]) -> np.ndarray | None:
     n = float(np.linalg.norm(mean))
     if n < MIN_CAMERA_UP_AGREEMENT:
         return None
-    return mean / n
+    mean = mean / n
+    axis = int(np.argmax(np.abs(mean)))
+    if np.degrees(np.arccos(min(abs(float(mean[axis])), 1.0))) <= SNAP_TO_AXIS_DEG:
+        snapped = np.zeros(3)
+        snapped[axis] = np.sign(mean[axis])
+        return snapped
+    return mean
 
 
 def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:

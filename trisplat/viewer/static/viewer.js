@@ -10,7 +10,8 @@ import {
 const BACKGROUND = 0x202428;
 const FRUSTUM_COLOR = 0xd0a040;
 const SELECTED_COLOR = 0x40e0ff;
-const FRUSTUM_SIZE = 0.08;     // frustum depth as a fraction of the scene's bounding radius
+const FRUSTUM_SIZE = 0.12;     // frustum depth as a fraction of the median camera distance to the mesh centre
+const OVERVIEW_BACKOFF = 1.6;  // the first view sits this many times farther out than camera 0
 const WALK_SPEED = 0.4;        // scene radii per second (x4 with Shift)
 const LOOK_SPEED = 0.004;      // radians per pixel dragged in walk mode
 const DIRECTION_WEIGHT = 1.0;  // nearest camera: distance in radii + this * (1 - cos(angle between view directions))
@@ -32,7 +33,7 @@ const camera = new PerspectiveCamera(50, 1, 0.01, 100);
 let controls = null; // made once the scene's up direction is known (OrbitControls fixes it at construction)
 
 const state = {
-  info: null, radius: 1, up: new Vector3(0, 1, 0), mesh: null, frusta: null, selected: null,
+  info: null, radius: 1, extent: 1, frustumDepth: 0.1, up: new Vector3(0, 1, 0), mesh: null, frusta: null, selected: null,
   snapped: null, showPhoto: false, walk: false, shaded: false, keys: new Set(), dirty: true, lastTime: 0,
 };
 let basicMaterial = null;
@@ -85,11 +86,11 @@ function buildFrusta() {
   const cams = state.info.cameras;
   if (!cams.length) return;
   const g = new BufferGeometry();
-  g.setAttribute('position', frustumSegments(cams, FRUSTUM_SIZE * state.radius));
+  g.setAttribute('position', frustumSegments(cams, state.frustumDepth));
   state.frusta = new LineSegments(g, new LineBasicMaterial({ color: FRUSTUM_COLOR }));
   scene.add(state.frusta);
   const sg = new BufferGeometry();
-  sg.setAttribute('position', frustumSegments([cams[0]], FRUSTUM_SIZE * state.radius));
+  sg.setAttribute('position', frustumSegments([cams[0]], state.frustumDepth));
   state.selected = new LineSegments(sg, new LineBasicMaterial({ color: SELECTED_COLOR }));
   state.selected.visible = false;
   scene.add(state.selected);
@@ -97,7 +98,7 @@ function buildFrusta() {
 
 function highlight(index) {
   if (!state.selected) return;
-  state.selected.geometry.setAttribute('position', frustumSegments([state.info.cameras[index]], FRUSTUM_SIZE * state.radius * 1.02));
+  state.selected.geometry.setAttribute('position', frustumSegments([state.info.cameras[index]], state.frustumDepth * 1.02));
   state.selected.visible = state.frusta.visible;
 }
 
@@ -179,7 +180,7 @@ function layout() {
   for (const el of [renderer.domElement, photo]) {
     el.style.left = `${left}px`; el.style.top = `${top}px`; el.style.width = `${w}px`; el.style.height = `${h}px`;
   }
-  const near = 0.002 * state.radius, far = 50 * state.radius;
+  const near = 0.002 * state.radius, far = 20 * state.extent;
   if (state.snapped !== null) {
     camera.projectionMatrix.copy(projectionFromK(state.info.cameras[state.snapped], near, far));
     camera.projectionMatrixInverse.copy(camera.projectionMatrix).invert();
@@ -342,8 +343,9 @@ function initialView() {
   camera.up.copy(state.up);
   makeControls();
   controls.target.copy(centre);
-  if (info.cameras.length) {
-    camera.position.setFromMatrixPosition(c2wMatrix(info.cameras[0]));
+  if (info.cameras.length) { // behind camera 0, looking at the mesh: the mesh and the frusta in view
+    const c0 = new Vector3().setFromMatrixPosition(c2wMatrix(info.cameras[0]));
+    camera.position.copy(centre).addScaledVector(c0.sub(centre), OVERVIEW_BACKOFF);
   } else {
     const side = Math.abs(state.up.z) > 0.9 ? new Vector3(1, -1, 0) : new Vector3(1, 0, 1);
     camera.position.copy(centre).addScaledVector(side.normalize(), 2.2 * state.radius).addScaledVector(state.up, 1.2 * state.radius);
@@ -367,7 +369,12 @@ async function main() {
   document.getElementById('title').textContent = info.title;
   document.title = `${info.title} - trisplat viewer`;
   state.up.set(...info.up).normalize();
-  state.radius = Math.max(new Vector3(...info.bounds_max).sub(new Vector3(...info.bounds_min)).length() / 2, 1e-6);
+  const lo = new Vector3(...info.bounds_min), hi = new Vector3(...info.bounds_max);
+  const centre = lo.clone().add(hi).multiplyScalar(0.5);
+  state.radius = Math.max(hi.clone().sub(lo).length() / 2, 1e-6);
+  const camDist = info.cameras.map((c) => new Vector3().setFromMatrixPosition(c2wMatrix(c)).distanceTo(centre)).sort((a, b) => a - b);
+  state.extent = Math.max(state.radius, ...camDist);
+  state.frustumDepth = FRUSTUM_SIZE * (camDist.length ? camDist[camDist.length >> 1] : state.radius);
   state.mesh = buildMesh(info, buf);
   scene.add(state.mesh);
   buildFrusta();
