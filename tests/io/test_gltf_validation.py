@@ -23,6 +23,7 @@ def test_glb_export_has_no_validation_errors(tmp_path, validator, coloured):
     report = validate_gltf(tmp_path / "m.glb")
     assert report.num_errors == 0, report.errors()
     assert report.num_warnings == 0, report.messages
+    assert report.num_hints == 0, report.messages  # bufferView targets are set
 
 
 def test_validator_reports_errors_in_a_broken_file(tmp_path, validator):

@@ -1,6 +1,8 @@
 """Coloured triangle meshes on disk: .ply, .obj (+ .mtl) and .glb writers and readers, registered by suffix."""
 from __future__ import annotations
 
+import json
+import struct
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -12,6 +14,7 @@ from plyfile import PlyData, PlyElement
 from trisplat.io.axes import up_rotation
 
 MTL_MATERIAL = "default"
+GL_ARRAY_BUFFER, GL_ELEMENT_ARRAY_BUFFER = 34962, 34963  # glTF bufferView.target values
 
 
 @dataclass(frozen=True)
@@ -59,8 +62,30 @@ def _write_obj(path: Path, positions: np.ndarray, faces: np.ndarray, rgb8: np.nd
 def _write_glb(path: Path, positions: np.ndarray, faces: np.ndarray, rgb8: np.ndarray | None) -> list[Path]:
     colors = None if rgb8 is None else np.column_stack([rgb8, np.full(len(rgb8), 255, np.uint8)])
     mesh = trimesh.Trimesh(positions, faces, vertex_colors=colors, process=False)
-    path.write_bytes(mesh.export(file_type="glb"))
+    path.write_bytes(_with_buffer_view_targets(mesh.export(file_type="glb")))
     return [path]
+
+
+def _with_buffer_view_targets(glb: bytes) -> bytes:
+    """Set bufferView.target (vertex data / indices) in a GLB's JSON chunk, which trimesh leaves out and the
+    glTF validator hints about."""
+    magic, version, _ = struct.unpack_from("<4sII", glb, 0)
+    json_len, json_type = struct.unpack_from("<I4s", glb, 12)
+    if magic != b"glTF" or json_type != b"JSON":
+        raise ValueError("trimesh wrote a GLB without a leading JSON chunk")
+    gltf = json.loads(glb[20 : 20 + json_len])
+    views, accessors = gltf.get("bufferViews", []), gltf.get("accessors", [])
+    for mesh in gltf.get("meshes", []):
+        for prim in mesh.get("primitives", []):
+            for acc in prim.get("attributes", {}).values():
+                views[accessors[acc]["bufferView"]]["target"] = GL_ARRAY_BUFFER
+            if "indices" in prim:
+                views[accessors[prim["indices"]]["bufferView"]]["target"] = GL_ELEMENT_ARRAY_BUFFER
+    chunk = json.dumps(gltf, separators=(",", ":")).encode()
+    chunk += b" " * (-len(chunk) % 4)
+    rest = glb[20 + json_len :]
+    header = struct.pack("<4sII", magic, version, 12 + 8 + len(chunk) + len(rest))
+    return header + struct.pack("<I4s", len(chunk), b"JSON") + chunk + rest
 
 
 FORMATS: dict[str, MeshFormat] = {

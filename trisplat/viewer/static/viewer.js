@@ -23,7 +23,7 @@ const photo = document.getElementById('photo');
 const statusEl = document.getElementById('status');
 
 ColorManagement.enabled = false; // colours are the photos' sRGB values: shown as stored, no conversion
-const renderer = new WebGLRenderer({ antialias: true, preserveDrawingBuffer: true });
+const renderer = new WebGLRenderer({ antialias: true });
 renderer.outputColorSpace = LinearSRGBColorSpace;
 renderer.setPixelRatio(window.devicePixelRatio || 1);
 stage.appendChild(renderer.domElement);
