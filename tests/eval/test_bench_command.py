@@ -75,3 +75,26 @@ def test_usage_and_unknown_suite(capsys):
     assert all(name in usage for name in ("render", "train", "mesh", "all"))
     assert bench.main(["fast"]) == 2
     assert "unknown suite 'fast'" in capsys.readouterr().err
+
+
+def test_machine_info_records_commit_and_dirtiness(tmp_path):
+    import subprocess
+    from pathlib import Path
+
+    from trisplat.bench.common import machine_info
+
+    info = machine_info()
+    repo = Path(bench.__file__).parent
+    head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=repo)
+    if head.returncode != 0:
+        pytest.skip("not inside a git checkout")
+    assert info["commit"] == head.stdout.strip()
+    status = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True,
+                            text=True, cwd=repo).stdout
+    assert info["commit_dirty"] is bool(status.strip())
+    assert info["cores"] >= 1 and info["cpu"] and info["torch"].startswith("2.")
+    t = BenchTable("x", ["a"])
+    t.add(1)
+    md = t.write(tmp_path, "cmd").read_text()
+    assert f"commit {info['commit']}" in md
+    assert ("uncommitted changes" in md) is info["commit_dirty"]

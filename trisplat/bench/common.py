@@ -33,7 +33,7 @@ def machine_info() -> dict:
         ).stdout.strip()
     except OSError:
         commit = ""
-    return {
+    return {**_more_machine_info(), **{
         "cpu": cpu,
         "cores": os.cpu_count(),
         "numba_threads": numba.get_num_threads(),
@@ -44,7 +44,32 @@ def machine_info() -> dict:
         "numpy": numpy.__version__,
         "commit": commit or "unknown",
         "date": time.strftime("%Y-%m-%d %H:%M"),
-    }
+    }}
+
+
+def _more_machine_info() -> dict:
+    """OS, total memory (GiB), trisplat's version and whether tracked files differ from the commit."""
+    from importlib import metadata
+
+    mem_gib = None
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemTotal:"):
+                mem_gib = round(int(line.split()[1]) / 2**20, 1)
+                break
+    except (OSError, ValueError):
+        pass
+    try:
+        version = metadata.version("trisplat")
+    except metadata.PackageNotFoundError:
+        version = "unknown"
+    try:
+        status = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True,
+                                text=True, cwd=Path(__file__).parent)  # fmt: skip
+        dirty = bool(status.stdout.strip()) if status.returncode == 0 else None
+    except OSError:
+        dirty = None
+    return {"os": platform.platform(), "memory_gib": mem_gib, "trisplat": version, "commit_dirty": dirty}
 
 
 def median_ms(fn: Callable[[], object], repeats: int = 5, warmup: int = 1) -> float:
@@ -97,7 +122,8 @@ class BenchTable:
                    "rows": self.rows, "notes": self.notes}
         (out_dir / f"{self.name}.json").write_text(json.dumps(payload, indent=2))
         header = (f"### {self.name}\n\n`{command}` on {info['cpu']} ({info['cores']} cores, numba threads "
-                  f"{info['numba_threads']}, torch threads {info['torch_threads']}), commit {info['commit']}, "
+                  f"{info['numba_threads']}, torch threads {info['torch_threads']}), commit {info['commit']}"
+                  f"{' (with uncommitted changes)' if info.get('commit_dirty') else ''}, "
                   f"{info['date']}\n\n")
         md = out_dir / f"{self.name}.md"
         md.write_text(header + self.markdown() + "\n")
