@@ -131,3 +131,22 @@ def test_bad_input_gets_precise_errors(tmp_path):
     (tmp_path / "junk.glb").write_bytes(b"not a glb at all")
     with pytest.raises(ValueError, match="junk.glb"):
         load_mesh(tmp_path / "junk.glb")
+
+
+def test_textured_obj_gets_its_texture_sampled_at_the_vertices(tmp_path):
+    from PIL import Image
+
+    texture = np.zeros((8, 8, 3), np.uint8)
+    texture[:, :4] = [255, 0, 0]  # left half red, right half blue (u < 0.5 / u > 0.5)
+    texture[:, 4:] = [0, 0, 255]
+    Image.fromarray(texture).save(tmp_path / "tex.png")
+    (tmp_path / "t.mtl").write_text("newmtl m\nKd 1 1 1\nmap_Kd tex.png\n")
+    (tmp_path / "t.obj").write_text(
+        "mtllib t.mtl\nv 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0\nvt 0.1 0.5\nvt 0.9 0.5\nvt 0.1 0.6\nvt 0.9 0.6\n"
+        "usemtl m\nf 1/1 2/2 3/3\nf 2/2 4/4 3/3\n"
+    )
+    p, f, c = load_mesh(tmp_path / "t.obj")
+    assert c is not None
+    left = p[:, 0] < 0.5
+    np.testing.assert_allclose(c[left], np.tile([1.0, 0.0, 0.0], (left.sum(), 1)), atol=0.02)
+    np.testing.assert_allclose(c[~left], np.tile([0.0, 0.0, 1.0], ((~left).sum(), 1)), atol=0.02)

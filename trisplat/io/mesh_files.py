@@ -155,20 +155,9 @@ def export_mesh(
     return fmt.write(path, positions.astype(np.float32), faces.astype(np.int32), rgb8)
 
 
-def load_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """Read a mesh file (any of FORMATS, ours or another tool's) in its stored vertex order.
-
-    Returns positions float32 [V,3], faces int32 [F,3], colors float32 [V,3] in [0,1] or None when the file has
-    no vertex colours. A GLB/glTF holding several meshes is returned as one (their union, scene transforms applied).
-    """
-    path = Path(path)
-    _format_of(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: no such mesh file")
+def _read_trimesh(path: Path, **kwargs) -> trimesh.Trimesh:
     try:
-        # An OBJ's material would replace its vertex colours in trimesh: ours is a plain default, skip it.
-        extra = {"skip_materials": True} if path.suffix.lower() == ".obj" else {}
-        loaded = trimesh.load(str(path), process=False, maintain_order=True, **extra)
+        loaded = trimesh.load(str(path), process=False, maintain_order=True, **kwargs)
     except Exception as exc:  # trimesh raises many types for malformed files
         raise ValueError(f"{path}: cannot read as {path.suffix} ({exc})") from exc
     if isinstance(loaded, trimesh.Scene):
@@ -182,6 +171,29 @@ def load_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | No
         raise ValueError(f"{path}: contains no triangle mesh (got {type(loaded).__name__})")
     if len(mesh.faces) == 0:
         raise ValueError(f"{path}: mesh has no faces")
+    return mesh
+
+
+def load_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Read a mesh file (any of FORMATS, ours or another tool's) in its stored vertex order.
+
+    Returns positions float32 [V,3], faces int32 [F,3], colors float32 [V,3] in [0,1] or None when the file has
+    no vertex colours. A GLB/glTF holding several meshes is returned as one (their union, scene transforms applied).
+    A textured OBJ without vertex colours gets its texture sampled at the vertices (vertices on UV seams are then
+    split, so the vertex count can exceed the file's 'v' lines).
+    """
+    path = Path(path)
+    _format_of(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such mesh file")
+    is_obj = path.suffix.lower() == ".obj"
+    # trimesh lets an OBJ's material replace its vertex colours: read the geometry and colours without it first
+    mesh = _read_trimesh(path, **({"skip_materials": True} if is_obj else {}))
+    if is_obj and mesh.visual.kind != "vertex" and b"mtllib" in path.read_bytes():
+        textured = _read_trimesh(path)
+        if textured.visual.kind == "texture" and getattr(textured.visual.material, "image", None) is not None:
+            mesh = textured
+            mesh.visual = mesh.visual.to_color()
     colors = None
     if mesh.visual.kind == "vertex":
         colors = (np.asarray(mesh.visual.vertex_colors)[:, :3] / 255.0).astype(np.float32)
