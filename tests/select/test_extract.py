@@ -106,8 +106,7 @@ def test_count_votes_and_ratio_threshold_by_hand():
 def test_fill_hidden_faces_on_a_strip():
     # a strip of 6 quads along x whose 12 faces form a chain of edge neighbours 0-1-2-...-11; faces 4-5 and 10-11
     # are unseen
-    xs = np.arange(7, dtype=float)
-    v = np.c_[np.r_[xs, xs], np.r_[np.zeros(7), np.ones(7)], np.zeros(14)]
+    # (vertices 0-6 along the bottom edge, 7-13 along the top; only the connectivity matters)
     faces = np.concatenate([[[i, i + 1, i + 8], [i, i + 8, i + 7]] for i in range(6)])
     seen = np.ones(12, bool)
     seen[[4, 5, 10, 11]] = False
@@ -122,7 +121,7 @@ def test_fill_hidden_faces_on_a_strip():
 
 
 def test_bad_arguments_are_precise():
-    mesh, label = two_object_mesh()
+    mesh, _ = two_object_mesh()
     cams = orbit_cameras(2, 3.0, 32, 24, seed=0)
     good = {0: np.ones((24, 32), bool)}
     with pytest.raises(ValueError, match=r"mask for camera 0 .* is 24x32 pixels, its image is 32x24"):

@@ -9,7 +9,14 @@ import pytest
 import trimesh
 from PIL import Image
 
-from trisplat.synth import DEMO_SHADING, demo_mesh, orbit_cameras, raycast_view, two_object_mesh, write_blender_scene
+from trisplat.synth import (
+    DEMO_SHADING,
+    demo_mesh,
+    orbit_cameras,
+    raycast_view,
+    two_object_mesh,
+    write_blender_scene,
+)
 from trisplat.synth.blender import CV_TO_GL
 from trisplat.synth.orbit import intrinsics, look_at
 

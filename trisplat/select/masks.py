@@ -1,8 +1,8 @@
 """Binary object masks on disk: read a PNG as a boolean image and match a folder of them to cameras by file stem."""
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
@@ -90,7 +90,7 @@ def match_masks(mask_dir: str | Path, cameras: Sequence[Camera], candidates: Seq
     for p in files:
         hits = by_stem[p.stem]
         if len(hits) > 1 and preferred is not None:
-            pref = set(int(i) for i in preferred)
+            pref = {int(i) for i in preferred}
             hits = [i for i in hits if i in pref] if sum(i in pref for i in hits) == 1 else hits
         if len(hits) > 1:
             names = ", ".join(str(cameras[i].image_path or cameras[i].name) for i in hits)

@@ -8,8 +8,8 @@ from trisplat.synth.surface import surface_colors
 __all__ = [
     "DEMO_SHADING",
     "RayCastView",
-    "bake_shading",
     "Shading",
+    "bake_shading",
     "demo_mesh",
     "look_at",
     "orbit_cameras",

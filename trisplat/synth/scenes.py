@@ -41,7 +41,7 @@ def ground_disk(radius: float = 1.2, rings: int = 6, sectors: int = 24, colors=(
         r0, r1 = radius * i / rings, radius * (i + 1) / rings
         for j in range(sectors):
             a0, a1 = 2 * math.pi * j / sectors, 2 * math.pi * (j + 1) / sectors
-            p = lambda r, a: (r * math.cos(a), r * math.sin(a), z)  # noqa: E731
+            p = lambda r, a: (r * math.cos(a), r * math.sin(a), z)
             col = colors[(i + j) % 2]
             if i == 0:
                 tris.append([p(0, 0), p(r1, a0), p(r1, a1)])
