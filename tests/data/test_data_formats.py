@@ -131,6 +131,14 @@ def test_fox_ngp_skips_missing_frames(fox_ngp):
     assert all(c.extras["source_model"] == "OPENCV" and c.extras["undistorted"] for c in fox_ngp.cameras)
 
 
+def test_transforms_json_path_reads_like_its_folder(fox_ngp, cache):
+    direct = load_dataset(shared_data("fox") / "transforms.json", downscale=4, cache_dir=cache, prepare="lazy")
+    assert direct.root == fox_ngp.root and len(direct.cameras) == len(fox_ngp.cameras)
+    for a, b in zip(direct.cameras, fox_ngp.cameras):
+        np.testing.assert_array_equal(a.world_to_camera, b.world_to_camera)
+        assert a.image_path == b.image_path
+
+
 def test_fox_colmap_reads_rigs_frames_model(fox_colmap):
     assert fox_colmap.format == "colmap"
     assert len(fox_colmap.cameras) == 50 and fox_colmap.points.shape == (13540, 3)

@@ -114,3 +114,24 @@ def test_zero_distortion_needs_no_cache(tmp_path):
     data = load_dataset(tmp_path / "cap", cache_dir=tmp_path / "cache", test_every=0)
     assert data.cameras[0].image_path == tmp_path / "cap" / "images" / "a.png"
     assert not (tmp_path / "cache").exists()
+
+
+def test_rgba_undistortion_does_not_bleed_hidden_colour(tmp_path):
+    """Grey where opaque, pure red where fully transparent: resampling premultiplied keeps every composited pixel
+    on the grey-white segment (R == G == B); resampling straight alpha would leak red at the silhouette."""
+    model, params = "OPENCV", CASES["OPENCV"]
+    write_capture(tmp_path / "cap", model, params)
+    fx, fy, cx, cy = intrinsics(model, params)
+    cols, rows = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
+    x, y = undistort_points(model, params, (cols - cx) / fx, (rows - cy) / fy)
+    opaque = (x**2 + y**2) < 0.3**2
+    rgba = np.zeros((H, W, 4), np.uint8)
+    rgba[opaque] = [128, 128, 128, 255]
+    rgba[~opaque] = [255, 0, 0, 0]
+    Image.fromarray(rgba, "RGBA").save(tmp_path / "cap" / "images" / "a.png")
+    data = load_dataset(tmp_path / "cap", cache_dir=tmp_path / "cache", test_every=0, downscale=2)
+    img = data.load_image(0)
+    assert (img[..., 1] < 0.6).sum() > 50 and (img[..., 1] > 0.99).sum() > 50  # both regions are there
+    partial = (img[..., 1] > 0.55) & (img[..., 1] < 0.95)
+    assert partial.sum() > 10  # the silhouette edge was resampled
+    assert np.abs(img[..., 0] - img[..., 1]).max() < 2.5 / 255
