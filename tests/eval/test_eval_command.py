@@ -43,8 +43,8 @@ def _make_run(root, model: str):
     scene = TriangleScene.from_rgb(verts.astype(np.float32), mesh.faces, rgb.astype(np.float32), opacity=0.9999)
     run = root / "run"
     run.mkdir()
-    (run / "config.json").write_text(json.dumps({"data": str(capture), "data_options": {"cache_dir": str(root / "cache")},
-                                                 "sigma_end": 1e-4, "steps": 7}))
+    config = {"data": str(capture), "data_options": {"cache_dir": str(root / "cache")}, "sigma_end": 1e-4, "steps": 7}
+    (run / "config.json").write_text(json.dumps(config))
     (run / "state.json").write_text(json.dumps({"finished": True, "step": 7, "total_steps": 7,
                                                 "sigma": SOFT_SIGMA}))
     (run / "history.jsonl").write_text("\n".join(json.dumps(r) for r in (
@@ -111,3 +111,23 @@ def test_eval_command_and_errors(good_run, tmp_path, capsys, monkeypatch):
     assert "not a trisplat run" in capsys.readouterr().err
     with pytest.raises(ValueError, match="mode must be one of"):
         evaluate_run(run, "test", "wireframe")
+
+
+def test_hard_eval_renders_the_opaque_mesh(good_run, tmp_path):
+    pytest.importorskip("trisplat.render.hard", reason="the z-buffer renderer (trisplat.render.hard) is not built yet")
+    run, data = good_run
+    m = evaluate_run(run, "test", "hard", out_dir=tmp_path / "h", lpips_weights=tmp_path / "none.npz",
+                     show_progress=False)
+    from trisplat.run import open_run
+
+    scene, _ = open_run(run).load_model()
+    for v in m.views:
+        rgb = render_view(scene, data.cameras[v.index], "hard", data.background)
+        assert v.psnr == pytest.approx(psnr(data.load_image(v.index), rgb), abs=1e-6)
+    assert m.psnr > 18.0  # the true surface with its true colours under a z-buffer
+    page = (tmp_path / "h" / "report.html").read_text()
+    assert "hard rendering" in page
+    stats = re.search(r"<th>num_faces</th><td>(\d+)</td>", page)
+    if stats is not None:  # trisplat.mesh.stats is present: the page shows the model's statistics
+        assert int(stats.group(1)) == len(_sphere().faces)
+        assert "<th>watertight</th><td>True</td>" in page
