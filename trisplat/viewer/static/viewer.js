@@ -11,7 +11,7 @@ const BACKGROUND = 0x202428;
 const FRUSTUM_COLOR = 0xd0a040;
 const SELECTED_COLOR = 0x40e0ff;
 const FRUSTUM_SIZE = 0.12;     // frustum depth as a fraction of the median camera distance to the mesh centre
-const OVERVIEW_BACKOFF = 1.6;  // the first view sits this many times farther out than camera 0
+const OVERVIEW_FIT = 1.3;      // the first view frames the mesh's bounding sphere with this margin
 const WALK_SPEED = 0.4;        // scene radii per second (x4 with Shift)
 const LOOK_SPEED = 0.004;      // radians per pixel dragged in walk mode
 const DIRECTION_WEIGHT = 1.0;  // nearest camera: distance in radii + this * (1 - cos(angle between view directions))
@@ -293,7 +293,7 @@ const actions = {
   n: () => state.info.cameras.length && snapTo(nearestCamera(), state.showPhoto), g: togglePhoto,
   '[': () => state.info.cameras.length && snapTo((state.snapped ?? 0) - 1, state.showPhoto),
   ']': () => state.info.cameras.length && snapTo((state.snapped ?? -1) + 1, state.showPhoto),
-  escape: () => unsnap(),
+  escape: () => unsnap(), h: () => document.body.classList.toggle('clean'),
 };
 window.addEventListener('keydown', (e) => {
   const k = e.key.toLowerCase();
@@ -343,12 +343,15 @@ function initialView() {
   camera.up.copy(state.up);
   makeControls();
   controls.target.copy(centre);
-  if (info.cameras.length) { // behind camera 0, looking at the mesh: the mesh and the frusta in view
+  const fit = (OVERVIEW_FIT * state.radius) / Math.sin((camera.fov * Math.PI) / 360);
+  if (info.cameras.length) { // from camera 0's side, framing the mesh: other cameras' frusta around it
     const c0 = new Vector3().setFromMatrixPosition(c2wMatrix(info.cameras[0]));
-    camera.position.copy(centre).addScaledVector(c0.sub(centre), OVERVIEW_BACKOFF);
+    const away = c0.sub(centre), dist = Math.max(fit, 1.25 * away.length());
+    camera.position.copy(centre).addScaledVector(away.normalize(), dist);
   } else {
     const side = Math.abs(state.up.z) > 0.9 ? new Vector3(1, -1, 0) : new Vector3(1, 0, 1);
-    camera.position.copy(centre).addScaledVector(side.normalize(), 2.2 * state.radius).addScaledVector(state.up, 1.2 * state.radius);
+    const dir = side.normalize().multiplyScalar(0.88).addScaledVector(state.up, 0.47).normalize();
+    camera.position.copy(centre).addScaledVector(dir, fit);
   }
   camera.lookAt(centre);
   controls.update();
