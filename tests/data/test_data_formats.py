@@ -217,6 +217,8 @@ def test_colmap_points_reproject_onto_undistorted_observations(fox_colmap):
 def test_icl_rgbd_depth_consistent_across_frames(cache):
     data = load_dataset(shared_data("icl_rgbd"), cache_dir=cache)
     assert data.format == "rgbd" and len(data.cameras) == 5
+    assert data.options["normalize"] == "points"  # cameras a few cm apart: the content sets the scale
+    assert data.scene_radius < 0.05 and 0.5 < data.bounds_radius <= 1.0
     np.testing.assert_allclose(data.cameras[0].K, [[525, 0, 320], [0, 525, 240], [0, 0, 1]])  # +0.5 px centre
     raw = np.asarray(Image.open(data.cameras[0].depth_path)).astype(np.float32)
     d0 = data.load_depth(0)

@@ -54,7 +54,7 @@ def describe(data) -> str:
                  f"capture centre {_fmt_vec(centre)}")
     if data.bounds is not None:
         lines.append(f"bounds      {_fmt_vec(data.bounds[0])} .. {_fmt_vec(data.bounds[1])} (normalised)")
-    lines.append(f"cam radius  {data.scene_radius:.4g} (normalised)")
+    lines.append(f"radius      cameras {data.scene_radius:.4g}, content {data.bounds_radius:.4g} (normalised)")
     lines.append(f"background  {_fmt_vec(data.background)}")
     for w in data.warnings:
         lines.append(f"warning     {w}")

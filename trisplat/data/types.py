@@ -61,6 +61,14 @@ class SceneData:
         return float(np.cbrt(abs(np.linalg.det(self.normalization[:3, :3]))))
 
     @property
+    def bounds_radius(self) -> float:
+        """Half the diagonal of `bounds` (normalised frame): a content scale that stays meaningful when the
+        cameras barely move (RGB-D, forward-facing), where `scene_radius` is tiny. scene_radius when no bounds."""
+        if self.bounds is None:
+            return self.scene_radius
+        return float(0.5 * np.linalg.norm(np.asarray(self.bounds[1]) - np.asarray(self.bounds[0]))) or 1.0
+
+    @property
     def scene_radius(self) -> float:
         """Radius of the camera centres around their mean (normalised frame), a scale for thresholds."""
         c = np.stack([cam.center for cam in self.cameras])
