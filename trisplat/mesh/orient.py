@@ -33,7 +33,9 @@ def edge_table(faces: np.ndarray) -> EdgeTable:
     und = np.sort(directed, axis=1)
     if len(und) == 0:
         return EdgeTable(np.zeros((0, 2), np.int64), np.zeros((0, 3), np.int64), np.zeros(0, np.int64))
-    edges, inverse, counts = np.unique(und, axis=0, return_inverse=True, return_counts=True)
+    n = np.int64(und.max()) + 1
+    keys, inverse, counts = np.unique(und[:, 0] * n + und[:, 1], return_inverse=True, return_counts=True)
+    edges = np.stack([keys // n, keys % n], axis=1)
     return EdgeTable(edges, inverse.reshape(-1, 3).astype(np.int64), counts.astype(np.int64))
 
 

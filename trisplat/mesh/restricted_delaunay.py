@@ -157,7 +157,9 @@ def restricted_delaunay(vertices: np.ndarray, soup_vertices: np.ndarray, soup_fa
     rep.num_kept_faces = len(oriented)
     rep.num_flipped = orep.num_flipped
     rep.num_conflicting_edges = orep.num_conflicting_edges
-    rep.num_unused_vertices = len(v) - len(np.unique(oriented))
+    used = np.zeros(len(v), bool)
+    used[oriented.reshape(-1)] = True
+    rep.num_unused_vertices = len(v) - int(used.sum())
     return oriented
 
 
@@ -186,7 +188,9 @@ def _spatial_dual(v: np.ndarray, ray_len: float, rep: RDTReport, t_start: float)
     rep.num_flat_tets = int(flat.sum())
     if rep.num_flat_tets:
         rep.notes.append(f"{rep.num_flat_tets} flat tetrahedra: centroid used as their circumcentre")
-    n_unused = len(v) - len(np.unique(simplices))
+    in_tet = np.zeros(len(v), bool)
+    in_tet[simplices.reshape(-1)] = True
+    n_unused = len(v) - int(in_tet.sum())
     if n_unused:
         rep.notes.append(f"{n_unused} vertices are in no tetrahedron (duplicates or coplanar with Qhull's tolerance)")
 
