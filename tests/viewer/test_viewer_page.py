@@ -152,3 +152,16 @@ def test_free_view_draws_the_training_cameras_as_frusta():
     no_frusta, server, stderr = _screenshot(data, "clean=1&frusta=0", (480, 360))
     _assert_clean_load(server, stderr)
     assert _near(no_frusta, FRUSTUM).sum() < 10
+
+
+def test_keys_jump_to_the_nearest_camera_and_toggle_its_photo():
+    data, _, photo = _camera_scene()
+    # the first view looks from camera 0's side, so G (photo of the nearest camera) must pick camera 0
+    image, server, stderr = _screenshot(data, "clean=1&do=g", (400, 300))
+    ready = _assert_clean_load(server, stderr)
+    assert ready["snapped"] == 0 and ready["photo"] is True
+    assert (np.abs(image - np.round(photo * 255)).max(axis=-1) <= COLOR_TOLERANCE).mean() > 0.99
+    # ] ] ] [ steps through cameras 0, 1, 2, 1; G shows the photo, G again returns to the mesh
+    _, server, stderr = _screenshot(data, "clean=1&do=],],],[,g,g", (400, 300))
+    ready = _assert_clean_load(server, stderr)
+    assert ready["snapped"] == 1 and ready["photo"] is False

@@ -387,6 +387,10 @@ async function main() {
   if (params.get('mode') === 'walk') setWalk(true);
   if (params.get('shaded') === '1') setShaded(true);
   if (params.has('cam') && info.cameras.length) snapTo(parseInt(params.get('cam'), 10) || 0, params.get('photo') === '1');
+  for (const key of (params.get('do') || '').split(',').filter(Boolean)) { // scripted key presses (tests, links)
+    if (!actions[key]) throw new Error(`unknown action key in ?do=: ${key}`);
+    actions[key]();
+  }
   setStatus();
   requestAnimationFrame(frame);
   const photoOk = await photoReady();
