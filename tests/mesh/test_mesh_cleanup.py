@@ -97,3 +97,13 @@ def test_connect_scene_keeps_vertices_and_replaces_faces():
     assert compact.num_vertices == len(np.unique(out.faces.numpy()))
     assert torch.equal(compact.sh, scene.sh[torch.as_tensor(rep2.vertex_source)])
     assert torch.equal(compact.positions[compact.faces.long()], scene.positions[out.faces.long()])
+
+
+def test_repair_non_manifold_edges_keeps_the_two_best_faces():
+    v = np.array([[0, 0, 0], [1, 0, 0], [0.5, 0.87, 0], [0.5, -0.87, 0], [0.5, 0.05, 0.1], [0.5, -0.1, 2.0]])
+    f = np.array([[0, 1, 2], [1, 0, 3], [0, 1, 4], [0, 1, 5]])  # four faces on edge (0,1); face 2 a sliver
+    assert mesh_statistics(v, f).non_manifold_edges == 1
+    r = clean_mesh(v, f, CleanupConfig(repair_non_manifold_edges=True, orient=False))
+    assert r.num_non_manifold_faces == 2
+    assert sorted(r.face_source.tolist()) == [0, 1]  # the two equilateral faces
+    assert mesh_statistics(r.vertices, r.faces).non_manifold_edges == 0

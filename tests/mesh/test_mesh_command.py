@@ -42,7 +42,13 @@ def test_mesh_command_writes_connected_mesh_in_capture_frame(tmp_path, capsys):
     assert len(f) == out["statistics"]["num_faces"] > 0
     assert out["statistics"]["num_unreferenced_vertices"] == 0
     st = out["statistics"]
-    assert st["vertex_face_ratio"] < 0.6 and st["non_manifold_edges"] <= 0.01 * st["num_edges"]
+    assert st["vertex_face_ratio"] < 0.6 and st["non_manifold_edges"] == 0  # repaired by default
+    assert out["cleanup"]["num_non_manifold_faces"] > 0
+    # without the repair, the raw triangulation has a few (under 1% of edges)
+    assert main([str(run), "--no-repair-non-manifold", "--out", str(tmp_path / "raw.obj")]) == 0
+    raw = json.loads(capsys.readouterr().out)["statistics"]
+    assert 0 < raw["non_manifold_edges"] <= 0.01 * raw["num_edges"]
+    assert len(load_mesh(tmp_path / "raw.obj")[1]) == raw["num_faces"] > st["num_faces"]
     # every written vertex is a model vertex, mapped to the capture frame, with its colour
     capture = (positions - normalization[:3, 3]) / 0.5
     d, idx = __import__("scipy.spatial", fromlist=["cKDTree"]).cKDTree(capture).query(v)

@@ -26,6 +26,8 @@ class MeshConfig:
     """drop vertex-connected pieces with fewer faces than this (count); 0 keeps all"""
     min_component_area_fraction: float = 0.0
     """drop pieces with less than this fraction of the total area; 0 keeps all"""
+    repair_non_manifold: bool = True
+    """at edges with more than two faces keep the two best-shaped faces (--no-repair-non-manifold keeps all)"""
     up: Optional[str] = None
     """rotate the export so the capture's up becomes +Y ('y') or +Z ('z'); default keeps the capture's axes"""
 
@@ -41,6 +43,7 @@ def main(argv: list[str]) -> int:
     scene, normalization = run.load_model()
     positions = scene.positions.detach().cpu().numpy().astype(np.float64)
     cleaned, rep = connect_faces(positions, scene.faces.detach().cpu().numpy(), ConnectConfig(
+        repair_non_manifold_edges=cfg.repair_non_manifold,
         min_component_faces=cfg.min_component_faces,
         min_component_area_fraction=cfg.min_component_area_fraction,
         drop_unreferenced_vertices=True,
@@ -57,7 +60,10 @@ def main(argv: list[str]) -> int:
     report = {
         "mesh": str(out),
         "soup_faces": scene.num_faces,
-        "restricted_delaunay": {k: v for k, v in vars(rep).items()},
+        "restricted_delaunay": dict(vars(rep)),
+        "cleanup": {k: getattr(cleaned, k) for k in ("num_degenerate_faces", "num_duplicate_faces",
+                                                     "num_non_manifold_faces", "num_fragments", "num_fragment_faces",
+                                                     "num_flipped")},
         "statistics": stats,
     }
     (Path(out).parent / STATS_FILE).write_text(json.dumps(report, indent=2))

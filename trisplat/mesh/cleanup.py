@@ -27,6 +27,8 @@ class CleanupConfig:
     """faces with area <= this are degenerate and dropped (scene units^2); faces repeating a vertex always are."""
     drop_duplicate_faces: bool = True
     """drop faces using the same three vertices as an earlier face (either winding)."""
+    repair_non_manifold_edges: bool = False
+    """at every edge with more than two faces keep the two best-shaped faces (aspect quality) and drop the rest."""
     orient: bool = True
     """flip faces so neighbours agree (outward on closed pieces)."""
     min_component_faces: int = 0
@@ -55,6 +57,7 @@ class CleanupResult:
     num_welded: int = 0  # input vertices merged into another
     num_degenerate_faces: int = 0
     num_duplicate_faces: int = 0
+    num_non_manifold_faces: int = 0  # faces dropped to make every edge have at most two faces
     num_fragment_faces: int = 0  # faces removed with small pieces
     num_fragments: int = 0  # pieces removed
     num_flipped: int = 0
@@ -99,6 +102,38 @@ def face_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
 
 
+def face_quality(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Aspect quality per face in [0,1]: 4*sqrt(3)*area / (sum of squared edge lengths); 1 = equilateral."""
+    tri = np.asarray(vertices, dtype=np.float64)[np.asarray(faces, dtype=np.int64).reshape(-1, 3)]
+    e = tri[:, [1, 2, 0]] - tri
+    sq = np.einsum("fkj,fkj->f", e, e)
+    return np.where(sq > 0, 4.0 * np.sqrt(3.0) * face_areas(vertices, faces) / np.maximum(sq, 1e-300), 0.0)
+
+
+def non_manifold_excess_faces(vertices: np.ndarray, faces: np.ndarray, max_rounds: int = 8) -> np.ndarray:
+    """bool [F]: faces to drop so that no edge has more than two faces; at each over-full edge the two faces of best
+    `face_quality` stay (repeated while dropping one face leaves another edge over-full, at most `max_rounds`)."""
+    from trisplat.mesh.orient import edge_table
+
+    faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    drop = np.zeros(len(faces), bool)
+    quality = face_quality(vertices, faces)
+    for _ in range(max_rounds):
+        alive = np.nonzero(~drop)[0]
+        table = edge_table(faces[alive])
+        slots = np.nonzero(table.edge_face_count[table.face_edges.reshape(-1)] > 2)[0]
+        if len(slots) == 0:
+            break
+        edge = table.face_edges.reshape(-1)[slots]
+        face = alive[slots // 3]
+        order = np.lexsort((-quality[face], edge))  # by edge, best quality first
+        edge, face = edge[order], face[order]
+        first = np.r_[True, edge[1:] != edge[:-1]]
+        rank = np.arange(len(edge)) - np.maximum.accumulate(np.where(first, np.arange(len(edge)), 0))
+        drop[face[rank >= 2]] = True
+    return drop
+
+
 def clean_mesh(vertices: np.ndarray, faces: np.ndarray, config: CleanupConfig = CleanupConfig()) -> CleanupResult:
     """Apply the cleanup steps of `config` in order: weld, drop degenerate, drop duplicates, remove fragments,
     orient, compact. vertices [V,3]; faces int [F,3]."""
@@ -130,6 +165,12 @@ def clean_mesh(vertices: np.ndarray, faces: np.ndarray, config: CleanupConfig = 
         first = np.sort(first)
         num_dup = len(f) - len(first)
         f, face_src, area = f[first], face_src[first], area[first]
+
+    num_nm = 0
+    if config.repair_non_manifold_edges and len(f):
+        drop = non_manifold_excess_faces(v, f)
+        num_nm = int(drop.sum())
+        f, face_src, area = f[~drop], face_src[~drop], area[~drop]
 
     num_frag_faces = num_frags = 0
     if (config.min_component_faces > 0 or config.min_component_area_fraction > 0) and len(f):
@@ -166,6 +207,7 @@ def clean_mesh(vertices: np.ndarray, faces: np.ndarray, config: CleanupConfig = 
         num_welded=num_welded,
         num_degenerate_faces=int(degenerate.sum()),
         num_duplicate_faces=num_dup,
+        num_non_manifold_faces=num_nm,
         num_fragment_faces=num_frag_faces,
         num_fragments=num_frags,
         num_flipped=num_flipped,

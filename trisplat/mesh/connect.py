@@ -23,6 +23,8 @@ class ConnectConfig:
     """drop vertex-connected pieces of the new mesh with fewer faces than this (count); 0 keeps all."""
     min_component_area_fraction: float = 0.0
     """drop pieces with less than this fraction of the total area (dimensionless); 0 keeps all."""
+    repair_non_manifold_edges: bool = False
+    """at edges with more than two faces keep the two best-shaped faces (see `cleanup.non_manifold_excess_faces`)."""
     drop_unreferenced_vertices: bool = False
     """False (the stage-2 switch): the vertex table is unchanged. True: keep only vertices some new face uses
     (the report's vertex_source then maps new vertices to old ones)."""
@@ -51,6 +53,7 @@ def connect_faces(positions: np.ndarray, soup_faces: np.ndarray, config: Connect
     faces = restricted_delaunay(positions, positions, soup_faces, report=rep)
     cleaned = clean_mesh(positions, faces, CleanupConfig(
         weld=False,
+        repair_non_manifold_edges=config.repair_non_manifold_edges,
         min_component_faces=config.min_component_faces,
         min_component_area_fraction=config.min_component_area_fraction,
         drop_unreferenced_vertices=config.drop_unreferenced_vertices,

@@ -50,6 +50,7 @@ class RDTReport:
     num_flipped: int = 0
     num_conflicting_edges: int = 0
     qhull_s: float = 0.0
+    qhull_cpu_s: float = 0.0  # process CPU time of the Qhull call (single-threaded: its wall time on an idle core)
     dual_s: float = 0.0
     bvh_build_s: float = 0.0
     bvh_test_s: float = 0.0
@@ -172,6 +173,7 @@ def restricted_delaunay_report(vertices, soup_vertices, soup_faces) -> tuple[np.
 
 def _spatial_dual(v: np.ndarray, ray_len: float, rep: RDTReport, t_start: float):
     """Delaunay faces [N,3] and their dual edges (p0, p1 [N,3]) for a full-dimensional vertex set."""
+    cpu0 = time.process_time()
     try:
         tri = Delaunay(v, qhull_options=QHULL_OPTIONS)
         rep.qhull_options = QHULL_OPTIONS
@@ -181,6 +183,7 @@ def _spatial_dual(v: np.ndarray, ray_len: float, rep: RDTReport, t_start: float)
         rep.joggled = True
         rep.notes.append(f"Qhull failed with {QHULL_OPTIONS!r} ({str(exc).splitlines()[0]}); retried with joggle QJ")
     rep.qhull_s = time.perf_counter() - t_start
+    rep.qhull_cpu_s = time.process_time() - cpu0
     simplices = np.ascontiguousarray(tri.simplices, dtype=np.int64)
     neighbors = tri.neighbors
     rep.num_tets = len(simplices)
