@@ -88,6 +88,10 @@ def test_soft_eval_scores_each_test_view(good_run, monkeypatch):
     for src in re.findall(r"src='([^']+)'", page):
         assert (out / src).is_file()
     assert "training_curves.png" in page and "&quot;sigma_end&quot;" in page
+    summary = page[page.index("<table id='run-summary'>"):]
+    summary = summary[: summary.index("</table>")]
+    assert f"<th>faces</th><td>{len(_sphere().faces)}</td>" in summary
+    assert "<th>train_wall_s</th><td>1.5000</td>" in summary and "<th>step</th><td>7</td>" in summary
 
 
 def test_black_model_scores_worse(tmp_path):

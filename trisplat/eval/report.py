@@ -156,8 +156,11 @@ def _num_attr(v) -> str:
     return repr(float(v)) if math.isfinite(float(v)) else json_safe(float(v))
 
 
-def plot_history(history: Sequence[dict], path: Path) -> Path | None:
-    """Training curves (test PSNR and face count against step and wall time) as one PNG; None if nothing to plot."""
+def plot_history(history: Sequence[dict], path: Path, final_psnr: float | None = None) -> Path | None:
+    """Training curves (test PSNR and face count against step and wall time) as one PNG; None if nothing to plot.
+
+    final_psnr: this evaluation's mean PSNR, drawn as a star at the last logged step / wall time.
+    """
     rows = [h for h in history if "step" in h]
     test = [h for h in rows if h.get("test_psnr") is not None and math.isfinite(float(h["test_psnr"]))]
     train = [h for h in rows if h.get("psnr") is not None and math.isfinite(float(h["psnr"]))]
@@ -178,6 +181,8 @@ def plot_history(history: Sequence[dict], path: Path) -> Path | None:
         if test:
             ax.plot([h.get(key, math.nan) for h in test], [h["test_psnr"] for h in test], "o-", color="C0", ms=3,
                     label="test PSNR")  # fmt: skip
+        if final_psnr is not None and math.isfinite(final_psnr) and rows:
+            ax.plot([rows[-1].get(key, math.nan)], [final_psnr], "*", color="C3", ms=12, label="this evaluation")
         ax.set_xlabel(label)
         ax.set_ylabel("PSNR (dB)")
         ax.grid(alpha=0.3)
@@ -255,12 +260,17 @@ def write_report(
     parts.append(row("mean", "mean", metrics.psnr, metrics.ssim, metrics.lpips))
     parts += [row("view", v.name, v.psnr, v.ssim, v.lpips) for v in metrics.views]
     parts.append("</table>")
+    if metrics.extra:
+        parts.append("<table id='run-summary'>")
+        for k, v in metrics.extra.items():
+            parts.append(f"<tr><th>{e(str(k))}</th><td>{e(_fmt(v, 4) if isinstance(v, float) else str(v))}</td></tr>")
+        parts.append("</table>")
     if metrics.render_seconds is not None and metrics.views:
         parts.append(f"<p>rendering: {metrics.render_seconds:.2f} s for {len(metrics.views)} views "
                      f"({metrics.render_seconds / len(metrics.views) * 1e3:.0f} ms per view)</p>")  # fmt: skip
 
     # --- training curves
-    curves = plot_history(history, img_dir / "training_curves.png")
+    curves = plot_history(history, img_dir / "training_curves.png", final_psnr=metrics.psnr)
     if curves is not None:
         parts.append(f"<h2>Training</h2><img id='curves' src='{IMAGES_DIR}/{curves.name}' alt='training curves'>")
 

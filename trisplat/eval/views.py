@@ -85,7 +85,7 @@ def evaluate_run(
     N views of the split (quick looks; the metrics say so).
     """
     from trisplat.eval.lpips import load_lpips, lpips
-    from trisplat.run import HISTORY, open_run
+    from trisplat.run import open_run
 
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
@@ -127,7 +127,9 @@ def evaluate_run(
         if k in shown:
             images.append(ViewImages(name=name, gt=gt, render=rgb))
 
-    extra = {"run": str(run.path), "step": run.state.get("step"), "faces": scene.num_faces,
+    history = run.history()
+    extra = {"run": str(run.path), "step": run.state.get("step"), "finished": run.state.get("finished"),
+             "train_wall_s": _last(history, "wall_s"), "faces": scene.num_faces,
              "vertices": scene.num_vertices}  # fmt: skip
     if sigma is not None:
         extra["sigma"] = sigma
@@ -137,11 +139,15 @@ def evaluate_run(
                            extra=extra)  # fmt: skip
     write_metrics(out, metrics)
     if report:
-        history_path = run.path / HISTORY
-        write_report(out, metrics, images, history=run.history() if history_path.exists() else [],
+        write_report(out, metrics, images, history=history,
                      mesh_stats=mesh_statistics_or_none(scene), config=run.config,
                      title=f"trisplat: {run.path.name} ({split}, {mode})")  # fmt: skip
     return metrics
+
+
+def _last(history: list[dict], key: str):
+    vals = [h[key] for h in history if key in h]
+    return vals[-1] if vals else None
 
 
 def mesh_statistics_or_none(scene):
