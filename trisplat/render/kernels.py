@@ -197,24 +197,29 @@ def bin_faces(theta, rect, key, ntiles, width, height, tile):
 
 
 @njit(cache=True, inline="always")
-def _row_span(th, py, xlo, xhi):
-    """Pixel-centre x range [xlo, xhi] inside all three edge half-planes on the row at height py (widened)."""
-    for k in range(3):
-        nx, ny, d = th[3 * k], th[3 * k + 1], th[3 * k + 2]
-        c = ny * py + d
-        if nx > 1e-12:
-            xhi = min(xhi, -c / nx + SPAN_EPS_PX)
-        elif nx < -1e-12:
-            xlo = max(xlo, -c / nx - SPAN_EPS_PX)
-        elif c >= SPAN_EPS_PX:
-            return 1.0, 0.0
+def _span(nx, rnx, c, xlo, xhi):
+    """Clip the x range [xlo, xhi] of one row to the half-plane nx * x + c < 0 (rnx = 1/nx, 0 if nx ~ 0)."""
+    if rnx > 0:
+        xhi = min(xhi, -c * rnx + SPAN_EPS_PX)
+    elif rnx < 0:
+        xlo = max(xlo, -c * rnx - SPAN_EPS_PX)
+    elif c >= SPAN_EPS_PX:
+        xlo = xhi + 1
     return xlo, xhi
 
 
+@njit(cache=True, inline="always")
+def _recip(nx):
+    return 1.0 / nx if abs(nx) > 1e-12 else 0.0
+
+
 @njit(parallel=True, cache=True, fastmath=True)
-def raster_forward(theta, pair_face, tile_start, tile_pairs, width, height, tile, sigma, alpha_min, alpha_max,
+def raster_forward(theta, rect, pair_face, tile_start, tile_pairs, width, height, tile, sigma, alpha_min, alpha_max,
                    t_min, perspective, bg, rgb, alpha, depth, normal, face_id, pair_weight, tile_evals):
     """Composite every tile front to back. Writes images, face_id (-1 = none), per-pair max weight."""
+    half = np.float32(0.5)
+    sig = np.float32(sigma)
+    alpha_min, alpha_max, t_min = np.float32(alpha_min), np.float32(alpha_max), np.float32(t_min)
     ntx = (width + tile - 1) // tile
     nt = tile_start.shape[0] - 1
     for t in prange(nt):
@@ -226,6 +231,7 @@ def raster_forward(theta, pair_face, tile_start, tile_pairs, width, height, tile
         T = np.ones(npx, np.float32)
         acc = np.zeros((npx, 7), np.float32)  # rgb, depth, normal
         fid = np.full(npx, -1, np.int64)
+        row_active = np.full(th_, tw, np.int64)  # pixels of each tile row still above transmittance_min
         active = npx
         evals = 0
         for i in range(tile_start[t], tile_start[t + 1]):
@@ -236,28 +242,37 @@ def raster_forward(theta, pair_face, tile_start, tile_pairs, width, height, tile
             th = theta[f]
             inv_r, o = th[T_INVR], th[T_OP]
             maxw = np.float32(0.0)
-            for iy in range(y0, y1):
-                py = iy + 0.5
-                xlo, xhi = _row_span(th, py, x0 + 0.5, x1 - 0.5)
+            n0x, n0y, d0, n1x, n1y, d1, n2x, n2y, d2 = th[0], th[1], th[2], th[3], th[4], th[5], th[6], th[7], th[8]
+            r0, r1, r2 = _recip(n0x), _recip(n1x), _recip(n2x)
+            xa, xb = max(x0, rect[f, 0]), min(x1 - 1, rect[f, 2])
+            for iy in range(max(y0, rect[f, 1]), min(y1 - 1, rect[f, 3]) + 1):
+                if row_active[iy - y0] == 0:
+                    continue
+                py = np.float32(iy) + half
+                c0, c1, c2 = n0y * py + d0, n1y * py + d1, n2y * py + d2
+                xlo, xhi = xa + 0.5, xb + 0.5
+                xlo, xhi = _span(n0x, r0, c0, xlo, xhi)
+                xlo, xhi = _span(n1x, r1, c1, xlo, xhi)
+                xlo, xhi = _span(n2x, r2, c2, xlo, xhi)
                 if xlo > xhi:
                     continue
-                ixa = max(x0, int(math.ceil(xlo - 0.5)))
-                ixb = min(x1 - 1, int(math.floor(xhi - 0.5)))
+                ixa = max(xa, int(math.ceil(xlo - 0.5)))
+                ixb = min(xb, int(math.floor(xhi - 0.5)))
                 for ix in range(ixa, ixb + 1):
                     q = (iy - y0) * tw + (ix - x0)
                     Tq = T[q]
                     if Tq < t_min:
                         continue
                     evals += 1
-                    px = ix + 0.5
-                    L0 = th[0] * px + th[1] * py + th[2]
-                    L1 = th[3] * px + th[4] * py + th[5]
-                    L2 = th[6] * px + th[7] * py + th[8]
+                    px = np.float32(ix) + half
+                    L0 = n0x * px + c0
+                    L1 = n1x * px + c1
+                    L2 = n2x * px + c2
                     phi = max(L0, max(L1, L2))
                     if phi >= 0.0:
                         continue
                     ratio = -phi * inv_r
-                    a = o * math.exp(sigma * math.log(ratio))
+                    a = o * math.exp(sig * math.log(ratio))
                     if a < alpha_min:
                         continue
                     if a > alpha_max:
@@ -274,7 +289,7 @@ def raster_forward(theta, pair_face, tile_start, tile_pairs, width, height, tile
                         acc[q, c] += w * (w0 * th[T_COL + c] + w1 * th[T_COL + 3 + c] + w2 * th[T_COL + 6 + c])
                         acc[q, 4 + c] += w * th[T_NRM + c]
                     acc[q, 3] += w / zinv
-                    Tn = Tq * (1.0 - a)
+                    Tn = Tq * (np.float32(1.0) - a)
                     T[q] = Tn
                     if w > maxw:
                         maxw = w
@@ -282,6 +297,7 @@ def raster_forward(theta, pair_face, tile_start, tile_pairs, width, height, tile
                         fid[q] = f
                     if Tn < t_min:
                         active -= 1
+                        row_active[iy - y0] -= 1
             pair_weight[p] = maxw
         tile_evals[t] = evals
         for q in range(npx):
@@ -308,12 +324,16 @@ def reduce_max_weight(pair_weight, face_start):
 
 
 @njit(parallel=True, cache=True, fastmath=True)
-def raster_backward(theta, pair_face, tile_start, tile_pairs, width, height, tile, sigma, alpha_min, alpha_max,
+def raster_backward(theta, rect, pair_face, tile_start, tile_pairs, width, height, tile, sigma, alpha_min, alpha_max,
                     t_min, perspective, bg, rgb, alpha, depth, normal, g_rgb, g_alpha, g_depth, g_normal, pair_grad):
     """Gradient of sum(g_rgb*rgb + g_alpha*alpha + g_depth*depth + g_normal*normal) w.r.t. THETA, per pair.
 
     Walks each tile front to back again; the light still to come behind a face is the pixel total minus the
-    running prefix, so no division by (1 - a) is needed to recover T."""
+    running prefix, so no division by (1 - a) is needed to recover T. Per-pair sums live in scalars."""
+    half = np.float32(0.5)
+    one = np.float32(1.0)
+    sig = np.float32(sigma)
+    alpha_min, alpha_max, t_min = np.float32(alpha_min), np.float32(alpha_max), np.float32(t_min)
     ntx = (width + tile - 1) // tile
     nt = tile_start.shape[0] - 1
     for t in prange(nt):
@@ -323,9 +343,9 @@ def raster_backward(theta, pair_face, tile_start, tile_pairs, width, height, til
         tw, th_ = x1 - x0, y1 - y0
         npx = tw * th_
         T = np.ones(npx, np.float32)
-        prefix = np.zeros(npx, np.float64)
-        total = np.empty(npx, np.float64)
-        gup = np.empty((npx, 8), np.float64)  # dC rgb, dA, dD, dN
+        prefix = np.zeros(npx, np.float32)
+        total = np.empty(npx, np.float32)
+        gup = np.empty((npx, 8), np.float32)  # dC rgb, dA, dD, dN
         for q in range(npx):
             iy, ix = y0 + q // tw, x0 + q % tw
             s = g_alpha[iy, ix] * alpha[iy, ix] + g_depth[iy, ix] * depth[iy, ix]
@@ -337,7 +357,7 @@ def raster_backward(theta, pair_face, tile_start, tile_pairs, width, height, til
             gup[q, 4] = g_depth[iy, ix]
             total[q] = s
         active = npx
-        g = np.zeros(N_THETA, np.float64)
+        row_active = np.full(th_, tw, np.int64)
         for i in range(tile_start[t], tile_start[t + 1]):
             if active == 0:
                 break
@@ -347,28 +367,48 @@ def raster_backward(theta, pair_face, tile_start, tile_pairs, width, height, til
             inv_r, o = th[T_INVR], th[T_OP]
             s0, s1, s2 = th[T_S], th[T_S + 1], th[T_S + 2]
             z0, z1, z2 = th[T_ZI], th[T_ZI + 1], th[T_ZI + 2]
-            g[:] = 0.0
-            for iy in range(y0, y1):
-                py = iy + 0.5
-                xlo, xhi = _row_span(th, py, x0 + 0.5, x1 - 0.5)
+            cr0, cg0, cb0 = th[T_COL], th[T_COL + 1], th[T_COL + 2]
+            cr1, cg1, cb1 = th[T_COL + 3], th[T_COL + 4], th[T_COL + 5]
+            cr2, cg2, cb2 = th[T_COL + 6], th[T_COL + 7], th[T_COL + 8]
+            nn0, nn1, nn2 = th[T_NRM], th[T_NRM + 1], th[T_NRM + 2]
+            n0x, n0y, d0, n1x, n1y, d1, n2x, n2y, d2 = th[0], th[1], th[2], th[3], th[4], th[5], th[6], th[7], th[8]
+            r0, r1, r2 = _recip(n0x), _recip(n1x), _recip(n2x)
+            # Per-pair gradient sums (float32 scalars, kept in registers).
+            zero = np.float32(0.0)
+            e0x = e0y = e0d = e1x = e1y = e1d = e2x = e2y = e2d = zero
+            ginv = gs0 = gs1 = gs2 = zero
+            gr0 = gg0 = gb0_ = gr1 = gg1 = gb1_ = gr2 = gg2 = gb2_ = zero
+            gz0 = gz1 = gz2 = gm0 = gm1 = gm2 = gop = zero
+            xa, xb = max(x0, rect[f, 0]), min(x1 - 1, rect[f, 2])
+            for iy in range(max(y0, rect[f, 1]), min(y1 - 1, rect[f, 3]) + 1):
+                if row_active[iy - y0] == 0:
+                    continue
+                py = np.float32(iy) + half
+                c0, c1, c2 = n0y * py + d0, n1y * py + d1, n2y * py + d2
+                xlo, xhi = xa + 0.5, xb + 0.5
+                xlo, xhi = _span(n0x, r0, c0, xlo, xhi)
+                xlo, xhi = _span(n1x, r1, c1, xlo, xhi)
+                xlo, xhi = _span(n2x, r2, c2, xlo, xhi)
                 if xlo > xhi:
                     continue
-                ixa = max(x0, int(math.ceil(xlo - 0.5)))
-                ixb = min(x1 - 1, int(math.floor(xhi - 0.5)))
+                ixa = max(xa, int(math.ceil(xlo - 0.5)))
+                ixb = min(xb, int(math.floor(xhi - 0.5)))
+                rL0 = rL1 = rL2 = zero  # row sums of dL_k (times px, and plain)
+                rP0 = rP1 = rP2 = zero
                 for ix in range(ixa, ixb + 1):
                     q = (iy - y0) * tw + (ix - x0)
                     Tq = T[q]
                     if Tq < t_min:
                         continue
-                    px = ix + 0.5
-                    L0 = th[0] * px + th[1] * py + th[2]
-                    L1 = th[3] * px + th[4] * py + th[5]
-                    L2 = th[6] * px + th[7] * py + th[8]
+                    px = np.float32(ix) + half
+                    L0 = n0x * px + c0
+                    L1 = n1x * px + c1
+                    L2 = n2x * px + c2
                     phi = max(L0, max(L1, L2))
                     if phi >= 0.0:
                         continue
                     ratio = -phi * inv_r
-                    I = math.exp(sigma * math.log(ratio))
+                    I = math.exp(sig * math.log(ratio))
                     a = o * I
                     if a < alpha_min:
                         continue
@@ -377,66 +417,64 @@ def raster_backward(theta, pair_face, tile_start, tile_pairs, width, height, til
                         a = alpha_max
                     b0, b1, b2 = -L1 * s0, -L2 * s1, -L0 * s2
                     zinv = b0 * z0 + b1 * z1 + b2 * z2
-                    dep = 1.0 / zinv
+                    dep = one / zinv
                     if perspective:
                         w0, w1, w2 = b0 * z0 * dep, b1 * z1 * dep, b2 * z2 * dep
                     else:
                         w0, w1, w2 = b0, b1, b2
-                    c_r = w0 * th[T_COL] + w1 * th[T_COL + 3] + w2 * th[T_COL + 6]
-                    c_g = w0 * th[T_COL + 1] + w1 * th[T_COL + 4] + w2 * th[T_COL + 7]
-                    c_b = w0 * th[T_COL + 2] + w1 * th[T_COL + 5] + w2 * th[T_COL + 8]
+                    c_r = w0 * cr0 + w1 * cr1 + w2 * cr2
+                    c_g = w0 * cg0 + w1 * cg1 + w2 * cg2
+                    c_b = w0 * cb0 + w1 * cb1 + w2 * cb2
                     w = a * Tq
                     gr, gg, gb = gup[q, 0], gup[q, 1], gup[q, 2]
                     gD = gup[q, 4]
                     gn0, gn1, gn2 = gup[q, 5], gup[q, 6], gup[q, 7]
-                    G = (gr * c_r + gg * c_g + gb * c_b + gup[q, 3] + gD * dep
-                         + gn0 * th[T_NRM] + gn1 * th[T_NRM + 1] + gn2 * th[T_NRM + 2])
+                    G = gr * c_r + gg * c_g + gb * c_b + gup[q, 3] + gD * dep + gn0 * nn0 + gn1 * nn1 + gn2 * nn2
                     pre = prefix[q] + w * G
                     prefix[q] = pre
-                    g_a = Tq * G - (total[q] - pre) / (1.0 - a)
-                    # Features: colour (through the barycentrics), depth, normal.
+                    g_a = Tq * G - (total[q] - pre) / (one - a)
                     gcr, gcg, gcb = w * gr, w * gg, w * gb
-                    g[T_NRM] += w * gn0
-                    g[T_NRM + 1] += w * gn1
-                    g[T_NRM + 2] += w * gn2
-                    g[T_COL] += w0 * gcr
-                    g[T_COL + 1] += w0 * gcg
-                    g[T_COL + 2] += w0 * gcb
-                    g[T_COL + 3] += w1 * gcr
-                    g[T_COL + 4] += w1 * gcg
-                    g[T_COL + 5] += w1 * gcb
-                    g[T_COL + 6] += w2 * gcr
-                    g[T_COL + 7] += w2 * gcg
-                    g[T_COL + 8] += w2 * gcb
-                    gw0 = gcr * th[T_COL] + gcg * th[T_COL + 1] + gcb * th[T_COL + 2]
-                    gw1 = gcr * th[T_COL + 3] + gcg * th[T_COL + 4] + gcb * th[T_COL + 5]
-                    gw2 = gcr * th[T_COL + 6] + gcg * th[T_COL + 7] + gcb * th[T_COL + 8]
+                    gm0 += w * gn0
+                    gm1 += w * gn1
+                    gm2 += w * gn2
+                    gr0 += w0 * gcr
+                    gg0 += w0 * gcg
+                    gb0_ += w0 * gcb
+                    gr1 += w1 * gcr
+                    gg1 += w1 * gcg
+                    gb1_ += w1 * gcb
+                    gr2 += w2 * gcr
+                    gg2 += w2 * gcg
+                    gb2_ += w2 * gcb
+                    gw0 = gcr * cr0 + gcg * cg0 + gcb * cb0
+                    gw1 = gcr * cr1 + gcg * cg1 + gcb * cb1
+                    gw2 = gcr * cr2 + gcg * cg2 + gcb * cb2
                     g_zinv = -(w * gD) * dep * dep
                     if perspective:
                         # w_k = b_k z_k / zinv  ->  d/d(b_k z_k) = gw_k / zinv, d/dzinv = -sum_k gw_k w_k / zinv
                         g_zinv -= (gw0 * w0 + gw1 * w1 + gw2 * w2) * dep
                         gbz0, gbz1, gbz2 = gw0 * dep, gw1 * dep, gw2 * dep
                         gb0, gb1, gb2 = gbz0 * z0, gbz1 * z1, gbz2 * z2
-                        g[T_ZI] += gbz0 * b0
-                        g[T_ZI + 1] += gbz1 * b1
-                        g[T_ZI + 2] += gbz2 * b2
+                        gz0 += gbz0 * b0
+                        gz1 += gbz1 * b1
+                        gz2 += gbz2 * b2
                     else:
                         gb0, gb1, gb2 = gw0, gw1, gw2
                     gb0 += g_zinv * z0
                     gb1 += g_zinv * z1
                     gb2 += g_zinv * z2
-                    g[T_ZI] += g_zinv * b0
-                    g[T_ZI + 1] += g_zinv * b1
-                    g[T_ZI + 2] += g_zinv * b2
+                    gz0 += g_zinv * b0
+                    gz1 += g_zinv * b1
+                    gz2 += g_zinv * b2
                     # b0 = -L1 s0, b1 = -L2 s1, b2 = -L0 s2
-                    g[T_S] -= gb0 * L1
-                    g[T_S + 1] -= gb1 * L2
-                    g[T_S + 2] -= gb2 * L0
+                    gs0 -= gb0 * L1
+                    gs1 -= gb1 * L2
+                    gs2 -= gb2 * L0
                     gL0, gL1, gL2 = -gb2 * s2, -gb0 * s0, -gb1 * s1
                     if not clamped:
-                        g[T_OP] += g_a * I
-                        g_ratio = g_a * o * sigma * I / ratio
-                        g[T_INVR] -= g_ratio * phi
+                        gop += g_a * I
+                        g_ratio = g_a * o * sig * I / ratio
+                        ginv -= g_ratio * phi
                         g_phi = -g_ratio * inv_r
                         if L0 >= L1 and L0 >= L2:
                             gL0 += g_phi
@@ -444,21 +482,37 @@ def raster_backward(theta, pair_face, tile_start, tile_pairs, width, height, til
                             gL1 += g_phi
                         else:
                             gL2 += g_phi
-                    g[0] += gL0 * px
-                    g[1] += gL0 * py
-                    g[2] += gL0
-                    g[3] += gL1 * px
-                    g[4] += gL1 * py
-                    g[5] += gL1
-                    g[6] += gL2 * px
-                    g[7] += gL2 * py
-                    g[8] += gL2
-                    Tn = Tq * (1.0 - a)
+                    rP0 += gL0 * px
+                    rP1 += gL1 * px
+                    rP2 += gL2 * px
+                    rL0 += gL0
+                    rL1 += gL1
+                    rL2 += gL2
+                    Tn = Tq * (one - a)
                     T[q] = Tn
                     if Tn < t_min:
                         active -= 1
-            for j in range(N_THETA):
-                pair_grad[p, j] = g[j]
+                        row_active[iy - y0] -= 1
+                e0x += rP0
+                e1x += rP1
+                e2x += rP2
+                e0y += rL0 * py
+                e1y += rL1 * py
+                e2y += rL2 * py
+                e0d += rL0
+                e1d += rL1
+                e2d += rL2
+            out = pair_grad[p]
+            out[0], out[1], out[2], out[3], out[4], out[5], out[6], out[7], out[8] = (
+                e0x, e0y, e0d, e1x, e1y, e1d, e2x, e2y, e2d)
+            out[T_INVR] = ginv
+            out[T_S], out[T_S + 1], out[T_S + 2] = gs0, gs1, gs2
+            out[T_COL], out[T_COL + 1], out[T_COL + 2] = gr0, gg0, gb0_
+            out[T_COL + 3], out[T_COL + 4], out[T_COL + 5] = gr1, gg1, gb1_
+            out[T_COL + 6], out[T_COL + 7], out[T_COL + 8] = gr2, gg2, gb2_
+            out[T_ZI], out[T_ZI + 1], out[T_ZI + 2] = gz0, gz1, gz2
+            out[T_NRM], out[T_NRM + 1], out[T_NRM + 2] = gm0, gm1, gm2
+            out[T_OP] = gop
 
 
 @njit(parallel=True, cache=True, fastmath=True)

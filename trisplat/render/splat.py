@@ -19,6 +19,7 @@ class _Bins:
     w2c: np.ndarray
     K: np.ndarray
     theta: np.ndarray
+    rect: np.ndarray
     argmin: np.ndarray
     face_start: np.ndarray
     pair_face: np.ndarray
@@ -58,11 +59,11 @@ def forward_numba(positions, faces, vertex_rgb, opacities, sigma, world_to_camer
     face_id = np.empty((height, width), np.int64)
     pair_weight = np.zeros(pair_face.shape[0], np.float32)
     evals = np.zeros(tile_start.shape[0] - 1, np.int64)
-    kn.raster_forward(theta, pair_face, tile_start, tile_pairs, width, height, tile, float(sigma),
+    kn.raster_forward(theta, rect, pair_face, tile_start, tile_pairs, width, height, tile, float(sigma),
                       float(opts.alpha_min), float(opts.alpha_max), float(opts.transmittance_min),
                       bool(opts.perspective_correct), bg, rgb, alpha, depth, normal, face_id, pair_weight, evals)
     max_weight = kn.reduce_max_weight(pair_weight, face_start)
-    bins = _Bins(pos, fc, w2c, Kn, theta, argmin, face_start, pair_face, tile_start, tile_pairs,
+    bins = _Bins(pos, fc, w2c, Kn, theta, rect, argmin, face_start, pair_face, tile_start, tile_pairs,
                  (rgb, alpha, depth, normal), bg)
     return (rgb, alpha, depth, normal), max_weight, face_id, int(evals.sum()), int((ntiles > 0).sum()), bins
 
@@ -71,8 +72,8 @@ def backward_numba(bins: _Bins, sigma, width, height, opts: RenderOptions, g_rgb
     """Exact gradients w.r.t. vertex positions [V,3], vertex colours [V,3] and vertex opacities [V] (float32)."""
     rgb, alpha, depth, normal = bins.images
     P = bins.pair_face.shape[0]
-    pair_grad = np.empty((P, kn.N_THETA), np.float32)
-    kn.raster_backward(bins.theta, bins.pair_face, bins.tile_start, bins.tile_pairs, width, height,
+    pair_grad = np.zeros((P, kn.N_THETA), np.float32)  # pairs after a tile saturates stay zero
+    kn.raster_backward(bins.theta, bins.rect, bins.pair_face, bins.tile_start, bins.tile_pairs, width, height,
                        int(opts.tile_size), float(sigma), float(opts.alpha_min), float(opts.alpha_max),
                        float(opts.transmittance_min), bool(opts.perspective_correct), bins.bg, rgb, alpha, depth,
                        normal, g_rgb, g_alpha, g_depth, g_normal, pair_grad)

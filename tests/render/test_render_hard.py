@@ -1,0 +1,84 @@
+"""The hard z-buffer renderer: brute-force nearest-face oracle, and the limit of the soft render."""
+from __future__ import annotations
+
+import numpy as np
+import torch
+from render_scenes import mesh_scene, random_scene
+
+from trisplat.render import rasterize, rasterize_hard
+
+BOUNDARY_FRACTION = 0.02  # pixels whose centre lies within rounding of an edge may pick either face
+
+
+def brute_force(pos, faces, col, w2c, K, W, H):
+    """Nearest face per pixel centre by testing every face (numpy, float64), screen-space colour interpolation."""
+    cam = pos @ w2c[:3, :3].T + w2c[:3, 3]
+    xs, ys = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
+    best = np.full((H, W), np.inf)
+    fid = np.full((H, W), -1)
+    rgb = np.zeros((H, W, 3))
+    for f, (i, j, k) in enumerate(faces):
+        tri = cam[[i, j, k]]
+        if (tri[:, 2] < 0.01).any():
+            continue
+        uv = (tri @ K.T)[:, :2] / tri[:, 2:3]
+        area2 = (uv[1, 0] - uv[0, 0]) * (uv[2, 1] - uv[0, 1]) - (uv[1, 1] - uv[0, 1]) * (uv[2, 0] - uv[0, 0])
+        if area2 == 0:
+            continue
+        def sub(a, b):  # noqa: E306
+            return ((a[0] - xs) * (b[1] - ys) - (a[1] - ys) * (b[0] - xs)) / area2
+        b = np.stack([sub(uv[1], uv[2]), sub(uv[2], uv[0]), sub(uv[0], uv[1])])
+        inside = (b >= 0).all(0)
+        z = 1.0 / (b / tri[:, 2][:, None, None]).sum(0)
+        win = inside & (z < best)
+        best[win] = z[win]
+        fid[win] = f
+        c = np.einsum("kyx,kc->yxc", b, col[[i, j, k]])
+        rgb[win] = c[win]
+    best[fid < 0] = 0
+    return fid, rgb, best
+
+
+def test_hard_matches_brute_force_z_buffer():
+    for seed in range(3):
+        pos, faces, col, _, w2c, K = random_scene(seed, 40)
+        out = rasterize_hard(pos, faces, col, w2c, K, 40, 32)
+        fid, rgb, depth = brute_force(pos.numpy(), faces.numpy(), col.numpy(), w2c.numpy(), K.numpy(), 40, 32)
+        same = out.face_id.numpy() == fid
+        assert same.mean() >= 1 - BOUNDARY_FRACTION
+        assert (fid >= 0).sum() > 300
+        np.testing.assert_allclose(out.rgb.numpy()[same], rgb[same], atol=1e-4)
+        np.testing.assert_allclose(out.depth.numpy()[same], depth[same], rtol=1e-4)
+        assert torch.equal(out.alpha, (out.face_id >= 0).to(out.alpha.dtype))
+
+
+def test_soft_render_tends_to_hard_render():
+    pos, faces, col, op, w2c, K = mesh_scene(3)
+    hard = rasterize_hard(pos, faces, col, w2c, K, 40, 32)
+    ones = torch.ones_like(op)
+    errs = []
+    for sigma in (0.5, 0.05, 1e-6):
+        soft = rasterize(pos, faces, col, ones, sigma, w2c, K, 40, 32, alpha_max=1 - 1e-6)
+        diff = (soft.rgb - hard.rgb).abs().amax(-1)
+        errs.append(diff.mean().item())
+    assert errs[0] > errs[1] > errs[2]
+    soft = rasterize(pos, faces, col, ones, 1e-6, w2c, K, 40, 32, alpha_max=1 - 1e-6)
+    diff = (soft.rgb - hard.rgb).abs().amax(-1)
+    assert (diff > 1e-3).float().mean().item() <= BOUNDARY_FRACTION
+    assert (soft.face_id != hard.face_id).float().mean().item() <= BOUNDARY_FRACTION
+    torch.testing.assert_close(soft.depth, hard.depth, atol=1e-3, rtol=0)
+    np.testing.assert_allclose(soft.normal.numpy(), hard.normal.numpy(), atol=1e-3)
+
+
+def test_hard_sh_degree0_and_batched():
+    from trisplat.scene.sh import rgb_to_sh_dc
+
+    pos, faces, col, _, w2c, K = random_scene(4, 20, kinds=False)
+    a = rasterize_hard(pos, faces, col, w2c, K, 40, 32, background=torch.tensor([0.1, 0.2, 0.3]))
+    b = rasterize_hard(pos, faces, rgb_to_sh_dc(col)[:, None], torch.stack([w2c, w2c]), K, 40, 32,
+                       background=torch.tensor([0.1, 0.2, 0.3]))
+    torch.testing.assert_close(b.rgb[1], a.rgb, atol=1e-5, rtol=0)
+    assert torch.equal(b.face_id[0], a.face_id)
+    assert (a.face_id < 0).sum() > 50
+    np.testing.assert_allclose(a.rgb.numpy()[a.face_id.numpy() < 0], [[0.1, 0.2, 0.3]] * int((a.face_id < 0).sum()),
+                               atol=1e-6)

@@ -1,0 +1,142 @@
+"""`trisplat bench render`: soft (forward, forward+backward) and hard renderer timings, pairs, peak memory."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import tyro
+
+REFERENCE_MAX_FACES = 100_000  # the dense reference is run only up to this many faces ...
+REFERENCE_MAX_PIXELS = 256 * 256  # ... and this image size (it needs GBs and minutes beyond)
+
+
+@dataclass
+class BenchRenderConfig:
+    """Benchmark the triangle-splatting renderer on random triangle soups (camera at the origin)."""
+
+    out: Path = Path("bench_results")
+    """Folder for render.json / render.md."""
+    repeats: int = 5
+    """Timed runs per case (the median is reported)."""
+    quick: bool = False
+    """Only the small cases (for a smoke run)."""
+    sigma: float = 0.5
+    """Window sharpness used for the soft renders."""
+    reference: bool = True
+    """Also time the dense PyTorch reference where it fits (100k faces at 256x256 takes about a minute)."""
+    case: str = ""
+    """Internal: run a single case 'W,H,F,lo,hi,ref' and print JSON (used to isolate peak memory per case)."""
+
+
+def random_triangles(n: int, width: int, height: int, size_px: tuple[float, float], seed: int = 0):
+    """n independent triangles with random screen positions (centres on the image), screen sizes uniform in size_px
+    (pixels, circumradius-like scale), depths 2-10, random colours and opacities 0.3-0.9.
+
+    Returns numpy positions float32 [3n,3], faces int32 [n,3], colors [3n,3], opacities [3n], world_to_camera, K.
+    """
+    rng = np.random.default_rng(seed)
+    f = 0.8 * width
+    K = np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1.0]])
+    c = rng.uniform([0, 0], [width, height], size=(n, 2))
+    s = rng.uniform(size_px[0], size_px[1], size=n)
+    ang = rng.uniform(0, 2 * np.pi, size=(n, 1)) + np.array([0, 2.1, 4.2]) + rng.normal(0, 0.25, size=(n, 3))
+    uv = c[:, None, :] + (s[:, None, None] / 2) * np.stack([np.cos(ang), np.sin(ang)], -1)  # [n,3,2]
+    z = rng.uniform(2, 10, size=(n, 1)) * (1 + rng.normal(0, 0.02, size=(n, 3)))
+    x = (uv[..., 0] - K[0, 2]) / f * z
+    y = (uv[..., 1] - K[1, 2]) / f * z
+    pos = np.stack([x, y, z], -1).reshape(-1, 3).astype(np.float32)
+    faces = np.arange(3 * n, dtype=np.int32).reshape(n, 3)
+    colors = rng.uniform(0, 1, size=(3 * n, 3)).astype(np.float32)
+    opac = rng.uniform(0.3, 0.9, size=3 * n).astype(np.float32)
+    return pos, faces, colors, opac, np.eye(4), K
+
+
+def _run_case(width: int, height: int, n: int, lo: float, hi: float, with_ref: bool, repeats: int, sigma: float):
+    import torch
+
+    from trisplat.bench.common import median_ms, peak_rss_mb
+    from trisplat.render import rasterize, rasterize_hard
+
+    pos, faces, col, op, w2c, K = random_triangles(n, width, height, (lo, hi))
+    P = torch.from_numpy(pos).requires_grad_()
+    C = torch.from_numpy(col).requires_grad_()
+    O = torch.from_numpy(op).requires_grad_()
+    g = torch.rand(height, width, 3)
+
+    def fwd(backend="numba"):
+        with torch.no_grad():
+            return rasterize(P, faces, C, O, sigma, w2c, K, width, height, backend=backend)
+
+    def fwd_bwd(backend="numba"):
+        out = rasterize(P, faces, C, O, sigma, w2c, K, width, height, backend=backend)
+        ((out.rgb * g).sum() + out.alpha.sum() + out.depth.sum() + out.normal.sum()).backward()
+        P.grad = C.grad = O.grad = None
+        return out
+
+    out = fwd()
+    row = {"size": f"{width}x{height}", "faces": n, "px": f"{lo:g}-{hi:g}", "pairs": out.pairs_evaluated,
+           "visible": out.faces_visible}
+    row["fwd_ms"] = median_ms(fwd, repeats=repeats)
+    row["fwd_bwd_ms"] = median_ms(fwd_bwd, repeats=repeats)
+    hard = lambda: rasterize_hard(pos, faces, col, w2c, K, width, height)  # noqa: E731
+    row["hard_ms"] = median_ms(hard, repeats=repeats)
+    row["hard_fps"] = 1000.0 / row["hard_ms"]
+    row["peak_rss_mb"] = peak_rss_mb()
+    if with_ref:
+        row["ref_fwd_bwd_ms"] = median_ms(lambda: fwd_bwd("reference"), repeats=1, warmup=0)
+        row["ref_peak_rss_mb"] = peak_rss_mb()
+    return row
+
+
+CASES = [  # width, height, faces, min px, max px
+    (256, 256, 20_000, 2, 20), (256, 256, 100_000, 2, 20), (256, 256, 20_000, 35, 45),
+    (800, 800, 20_000, 2, 20), (800, 800, 100_000, 2, 20), (800, 800, 1_000_000, 2, 20), (800, 800, 20_000, 35, 45),
+]
+
+
+def main(argv: list[str] | None = None) -> int:
+    cfg = tyro.cli(BenchRenderConfig, args=argv, description=__doc__)
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    if cfg.case:
+        w, h, n, lo, hi, ref = cfg.case.split(",")
+        row = _run_case(int(w), int(h), int(n), float(lo), float(hi), ref == "1", cfg.repeats, cfg.sigma)
+        print("RESULT " + json.dumps(row))
+        return 0
+    from tqdm import tqdm
+
+    from trisplat.bench.common import BenchTable
+
+    cols = ["image", "faces", "tri px", "pairs evaluated", "fwd ms", "fwd+bwd ms", "peak RSS MB", "ref fwd+bwd ms",
+            "ref peak RSS MB", "speed-up vs ref", "hard ms", "hard FPS"]
+    table = BenchTable("render", cols)
+    cases = CASES[:3] if cfg.quick else CASES
+    for w, h, n, lo, hi in tqdm(cases, desc="bench render"):
+        ref = cfg.reference and n <= REFERENCE_MAX_FACES and w * h <= REFERENCE_MAX_PIXELS
+        cmd = [sys.executable, "-m", "trisplat.bench.render", "--case", f"{w},{h},{n},{lo},{hi},{int(ref)}",
+               "--repeats", str(cfg.repeats), "--sigma", str(cfg.sigma)]
+        proc = subprocess.run(cmd, capture_output=True, text=True)
+        lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")]
+        if proc.returncode != 0 or not lines:
+            table.add(f"{w}x{h}", n, f"{lo}-{hi}", *(["failed"] + [None] * 8))
+            print(proc.stderr[-2000:], file=sys.stderr)
+            continue
+        r = json.loads(lines[-1][7:])
+        ref_ms = r.get("ref_fwd_bwd_ms")
+        table.add(r["size"], n, r["px"], r["pairs"], r["fwd_ms"], r["fwd_bwd_ms"], r["peak_rss_mb"], ref_ms,
+                  r.get("ref_peak_rss_mb"), ref_ms / r["fwd_bwd_ms"] if ref_ms else None, r["hard_ms"], r["hard_fps"])
+    table.notes.append("Medians over --repeats runs after one warm-up; each case runs in its own process so peak RSS "
+                       "is per case (it includes the Python/torch/numba baseline, about 300-400 MB). The dense "
+                       "reference is timed once. fwd+bwd includes the loss backward to positions, colours and "
+                       "opacities. The machine is shared: numbers are noisy.")
+    md = table.write(cfg.out, "trisplat bench render " + " ".join(argv or []))
+    print(md.read_text())
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main(sys.argv[1:]))
