@@ -4,7 +4,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional
+from typing import Annotated, Optional
 
 import numpy as np
 import tyro
@@ -14,9 +14,9 @@ import tyro
 class CompareConfig:
     """Score image B against image A (PSNR in dB, SSIM, LPIPS-AlexNet v0.1). Alpha is composited over white."""
 
-    image_a: tyro.conf.Positional[Path]
+    image_a: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="IMG_A")]
     """reference image (PNG/JPEG/...)"""
-    image_b: tyro.conf.Positional[Path]
+    image_b: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="IMG_B")]
     """image to score against the reference, same size"""
     lpips_weights: Optional[Path] = None
     """LPIPS .npz (default: $TRISPLAT_LPIPS_WEIGHTS, else ~/.cache/trisplat/lpips_alexnet_full_oihw.npz)"""
@@ -57,7 +57,7 @@ def compare_images(a: np.ndarray, b: np.ndarray, lpips_weights: Path | None = No
 
 
 def main(argv: list[str]) -> int:
-    cfg = tyro.cli(CompareConfig, args=argv, description=__doc__)
+    cfg = tyro.cli(CompareConfig, args=argv, description=__doc__, prog="trisplat compare")
     a, b = read_rgb(cfg.image_a), read_rgb(cfg.image_b)
     if a.shape != b.shape:
         raise ValueError(f"{cfg.image_b}: size {b.shape[1]}x{b.shape[0]} differs from {cfg.image_a} "

@@ -4,7 +4,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal, Optional
+from typing import Annotated, Literal, Optional
 
 import tyro
 
@@ -13,7 +13,7 @@ import tyro
 class EvalConfig:
     """Render a trained run's test (or train) views and write RUN/eval_<split>/metrics.json and report.html."""
 
-    run: tyro.conf.Positional[Path]
+    run: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="RUN")]
     """run directory written by `trisplat train`"""
     split: Literal["test", "train"] = "test"
     """which views to render"""
@@ -25,20 +25,20 @@ class EvalConfig:
     """LPIPS .npz (default: $TRISPLAT_LPIPS_WEIGHTS, else ~/.cache/trisplat/lpips_alexnet_full_oihw.npz)"""
     max_views: Optional[int] = None
     """evaluate only the first N views of the split (a quick look)"""
-    no_report: bool = False
-    """write metrics.json only"""
+    report: bool = True
+    """write report.html (with pictures) next to metrics.json"""
 
 
 def main(argv: list[str]) -> int:
-    cfg = tyro.cli(EvalConfig, args=argv, description=__doc__)
+    cfg = tyro.cli(EvalConfig, args=argv, description=__doc__, prog="trisplat eval")
     from trisplat.eval.report import REPORT_HTML, json_safe
     from trisplat.eval.views import evaluate_run
 
     m = evaluate_run(cfg.run, cfg.split, cfg.mode, out_dir=cfg.out, lpips_weights=cfg.lpips_weights,
-                     max_views=cfg.max_views, report=not cfg.no_report)  # fmt: skip
+                     max_views=cfg.max_views, report=cfg.report)  # fmt: skip
     summary = {k: v for k, v in m.to_dict().items() if k != "views"}
     print(json.dumps(json_safe(summary), indent=2))
     out = cfg.out or cfg.run / (f"eval_{cfg.split}" + ("_soft" if cfg.mode == "soft" else ""))
-    if not cfg.no_report:
+    if cfg.report:
         print(f"report: {out / REPORT_HTML}")
     return 0
