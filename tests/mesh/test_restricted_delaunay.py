@@ -54,7 +54,7 @@ def test_cospherical_points_give_their_convex_hull():
     # points exactly on a sphere are all co-spherical: every Voronoi vertex is the centre, only hull rays hit
     pts = fibonacci_sphere(800)
     soup = trimesh.creation.icosphere(3, radius=0.999)
-    faces, rep = restricted_delaunay_report(pts, soup.vertices, soup.faces)
+    faces = restricted_delaunay(pts, soup.vertices, soup.faces)
     _assert_closed_sphere(pts, faces)
     hull = trimesh.convex.convex_hull(pts)
     assert len(faces) == len(hull.faces) == 2 * 800 - 4

@@ -4,7 +4,6 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional
 
 import tyro
 
@@ -19,7 +18,7 @@ class CompareMeshConfig:
     """predicted mesh (.ply/.obj/.glb/... any format trimesh reads)"""
     gt: tyro.conf.Positional[Path]
     """ground-truth mesh or point cloud (a file with no faces is a point cloud)"""
-    threshold: Optional[float] = None
+    threshold: float | None = None
     """F-score distance threshold in the files' units (default: 1% of the GT bounding-box diagonal)"""
     samples: int = DEFAULT_SAMPLES
     """points sampled area-uniformly on each mesh"""

@@ -4,7 +4,6 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional
 
 import numpy as np
 import tyro
@@ -20,7 +19,7 @@ class MeshConfig:
 
     run: tyro.conf.Positional[Path]
     """run directory written by `trisplat train`"""
-    out: Optional[Path] = None
+    out: Path | None = None
     """output mesh (.ply/.obj/.glb); default RUN/mesh_connected.ply"""
     min_component_faces: int = 0
     """drop vertex-connected pieces with fewer faces than this (count); 0 keeps all"""
@@ -28,7 +27,7 @@ class MeshConfig:
     """drop pieces with less than this fraction of the total area; 0 keeps all"""
     repair_non_manifold: bool = True
     """at edges with more than two faces keep the two best-shaped faces (--no-repair-non-manifold keeps all)"""
-    up: Optional[str] = None
+    up: str | None = None
     """rotate the export so the capture's up becomes +Y ('y') or +Z ('z'); default keeps the capture's axes"""
 
 

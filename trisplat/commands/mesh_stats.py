@@ -4,7 +4,6 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional
 
 import numpy as np
 import tyro
@@ -18,7 +17,7 @@ class MeshStatsConfig:
 
     mesh: tyro.conf.Positional[Path]
     """mesh file (.ply/.obj/.glb/.stl/... any format trimesh reads); vertices are used as stored"""
-    weld_tolerance: Optional[float] = None
+    weld_tolerance: float | None = None
     """merge vertices closer than this (file units) first, e.g. 0 for exact duplicates of STL/OBJ seams"""
     self_intersections: bool = True
     """count edges crossing non-adjacent faces (BVH test)"""

@@ -110,10 +110,8 @@ def _build_nodes(tri_sorted, leaf_size):
                 for j in range(3):
                     for k in range(3):
                         v = tri_sorted[t, j, k]
-                        if v < node_min[node, k]:
-                            node_min[node, k] = v
-                        if v > node_max[node, k]:
-                            node_max[node, k] = v
+                        node_min[node, k] = min(node_min[node, k], v)
+                        node_max[node, k] = max(node_max[node, k], v)
         else:
             a = left[node]
             b = right[node]
@@ -199,10 +197,8 @@ def _any_hit_kernel(p0s, p1s, excl_a, excl_b, tri, tri_ids, order, nmin, nmax, l
                     tb = (nmax[node, k] - p0[k]) * inv[k]
                     if ta > tb:
                         ta, tb = tb, ta
-                    if ta > t0:
-                        t0 = ta
-                    if tb < t1:
-                        t1 = tb
+                    t0 = max(t0, ta)
+                    t1 = min(t1, tb)
                     if t0 > t1:
                         miss = True
                         break
@@ -279,7 +275,7 @@ def segment_any_hit_reference(vertices: np.ndarray, faces: np.ndarray, p0: np.nd
         v = np.sum(d * qvec, -1) * inv
         s = np.sum(e2 * qvec, -1) * inv
     hit = ok & (u >= 0) & (u <= 1) & (v >= 0) & (u + v <= 1) & (s >= 0) & (s <= 1)
-    uses = lambda e: (faces[None, :, :] == e[:, None, None]).any(-1) & (e[:, None] >= 0)  # noqa: E731
+    uses = lambda e: (faces[None, :, :] == e[:, None, None]).any(-1) & (e[:, None] >= 0)
     hit &= ~uses(ea) & ~uses(eb)
     first = np.where(hit.any(axis=1), hit.argmax(axis=1), -1)
     return first.astype(np.int64)
