@@ -75,6 +75,10 @@ def test_ssim_rejects_bad_shapes():
         ssim(np.zeros((20, 20, 3)), np.zeros((20, 21, 3)))
     with pytest.raises(ValueError, match=r"\[H,W,3\]"):
         ssim(np.zeros((20, 20)), np.zeros((20, 20)))
+    with pytest.raises(ValueError, match="image a must be a float image in \\[0,1\\], got dtype uint8"):
+        psnr(np.zeros((20, 20, 3), np.uint8), np.zeros((20, 20, 3)))
+    with pytest.raises(ValueError, match="float image"):
+        ssim(torch.zeros(20, 20, 3), torch.zeros(20, 20, 3, dtype=torch.uint8))
     with pytest.raises(ValueError, match="smaller than the 11x11"):
         ssim(np.zeros((8, 20, 3)), np.zeros((8, 20, 3)))
 

@@ -56,6 +56,11 @@ def test_module_is_differentiable_and_batched():
     assert y.grad[0].abs().sum() > 0 and y.grad[1].abs().sum() == 0
 
 
+def test_integer_images_are_refused():
+    with pytest.raises(ValueError, match="image b must be a float image.*uint8"):
+        lp.lpips(np.zeros((32, 32, 3)), np.zeros((32, 32, 3), np.uint8), _weights())
+
+
 def test_too_small_images_are_refused():
     with pytest.raises(ValueError, match="at least 31x31 px, got 40x30"):
         lp.lpips(np.zeros((30, 40, 3)), np.zeros((30, 40, 3)), _weights())

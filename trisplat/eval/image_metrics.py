@@ -24,7 +24,10 @@ SSIM_K2 = 0.03  # contrast stabiliser, fraction of the data range
 def _as_array(img, name: str) -> np.ndarray:
     if isinstance(img, torch.Tensor):
         img = img.detach().cpu().numpy()
-    a = np.asarray(img, dtype=np.float64)
+    img = np.asarray(img)
+    if not np.issubdtype(img.dtype, np.floating):
+        raise ValueError(f"{name} must be a float image in [0,1], got dtype {img.dtype} (divide 8-bit images by 255)")
+    a = img.astype(np.float64)
     if a.ndim != 3 or a.shape[2] != 3:
         raise ValueError(f"{name} must be an [H,W,3] image, got shape {a.shape}")
     return a

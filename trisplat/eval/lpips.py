@@ -140,7 +140,10 @@ def lpips(a, b, weights: str | Path | None = None) -> float:
     """
     x, y = (t.detach().to("cpu", torch.float32) if isinstance(t, torch.Tensor)
             else torch.from_numpy(np.array(t, dtype=np.float32)) for t in (a, b))  # fmt: skip
-    for name, t in (("image a", x), ("image b", y)):
+    for name, t, src in (("image a", x, a), ("image b", y, b)):
+        dtype = src.dtype if isinstance(src, torch.Tensor) else np.asarray(src).dtype
+        if not (dtype.is_floating_point if isinstance(dtype, torch.dtype) else np.issubdtype(dtype, np.floating)):
+            raise ValueError(f"{name} must be a float image in [0,1], got dtype {dtype} (divide 8-bit images by 255)")
         if t.ndim != 3 or t.shape[2] != 3:
             raise ValueError(f"{name} must be an [H,W,3] image, got shape {tuple(t.shape)}")
     if x.shape != y.shape:
