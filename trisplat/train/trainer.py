@@ -140,7 +140,7 @@ class Trainer:
             tile_size=self.cfg.tile_size, backend=self.cfg.backend)
 
     def gt(self, cam_index: int) -> torch.Tensor:
-        return torch.from_numpy(np.ascontiguousarray(self.data.load_image(cam_index))).to(self.device)
+        return torch.tensor(np.asarray(self.data.load_image(cam_index), dtype=np.float32), device=self.device)
 
     # ------------------------------------------------------------------------------------------------------ step
     def _set_learning_rates(self, p: float) -> None:
@@ -186,7 +186,7 @@ class Trainer:
             px = losses.projected_edge_px(self.ts.params["positions"].detach(), self.ts.faces,
                                           torch.as_tensor(cam.world_to_camera, dtype=torch.float32), K, cfg.near)
             st["max_screen_px"] = torch.maximum(st["max_screen_px"], px)
-        return {"ok": True, "loss": float(loss), "psnr": psnr_value(out.rgb.detach().clamp(0, 1), gt)}
+        return {"ok": True, "loss": float(loss.detach()), "psnr": psnr_value(out.rgb.detach().clamp(0, 1), gt)}
 
     def _strategy(self, p_prev: float, p: float) -> None:
         """Periodic events: epoch roll of statistics, pruning, densification, switch to a connected mesh."""
@@ -287,11 +287,8 @@ class Trainer:
             bar.update(1)
         bar.close()
         self.save_checkpoint()
-        finished = self.step >= self.clock.total
-        result = TrainResult(self.run_dir, self.step, self.wall_s, self.ts.to_scene())
-        if finished:
-            result.metrics = self.finish()
-        return result
+        metrics = self.finish() if self.step >= self.clock.total else {}
+        return TrainResult(self.run_dir, self.step, self.wall_s, self.ts.to_scene(), metrics)
 
     # ---------------------------------------------------------------------------------------------------- finish
     @torch.no_grad()
