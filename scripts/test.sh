@@ -1,10 +1,12 @@
 #!/usr/bin/env bash
-# Set up a virtual environment (CPU torch first, so nothing pulls CUDA builds) and run the test suite.
+# Set up a virtual environment (CPU torch first, so nothing pulls CUDA builds), install the test extras and the
+# tools the viewer/glTF tests use (headless Chromium, the Khronos glTF validator), then run the test suite.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 export OMP_WAIT_POLICY=PASSIVE
-python3 -m venv .venv
+[ -x .venv/bin/python ] || python3 -m venv .venv
 . .venv/bin/activate
 pip install -q torch==2.13.0
 pip install -q -e ".[test]"
+bash scripts/ci_extras.sh
 python -m pytest -q "$@"
