@@ -62,7 +62,8 @@ class Trainer:
         self.device = torch.device(device)
         self.show_progress = show_progress
         self.background = torch.tensor(cfg.background, dtype=torch.float32, device=self.device)
-        self.extent = 1.1 * data.scene_radius
+        # length scale of position learning rates: the camera spread, or the content size when cameras barely move
+        self.extent = 1.1 * max(data.scene_radius, data.bounds_radius)
         self.generator = torch.Generator().manual_seed(cfg.seed)
         self.lr_scale = 1.0
         self.rollbacks = 0
