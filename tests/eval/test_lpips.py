@@ -123,6 +123,24 @@ def test_converter_round_trips_the_flax_layout(tmp_path):
     assert lp.lpips(ref, p1, out) == pytest.approx(0.138, abs=5e-4)
 
 
+def test_converter_command_writes_to_the_configured_path(tmp_path, monkeypatch, capsys):
+    import pickle
+
+    with np.load(_weights()) as z:
+        arrays = {k: z[k] for k in z.files}
+    ckpt = tmp_path / "alexnet.ckpt"
+    ckpt.write_bytes(pickle.dumps(_fake_flax_checkpoint(arrays)))
+    target = tmp_path / "cache" / lp.WEIGHTS_FILENAME
+    monkeypatch.setenv(lp.WEIGHTS_ENV, str(target))
+    assert lp._main([str(ckpt)]) == 0
+    assert capsys.readouterr().out.strip() == str(target)
+    assert lp.weights_path() == target  # the file the message told the user to make is the one found next time
+    assert lp._main([]) == 2
+    assert "usage" in capsys.readouterr().err
+    with pytest.raises(FileNotFoundError, match="nope.ckpt: no such file"):
+        lp._main([str(tmp_path / "nope.ckpt")])
+
+
 def test_converter_refuses_code_in_pickles(tmp_path):
     import os
     import pickle

@@ -113,7 +113,8 @@ def evaluate_run(
     views: list[ViewMetrics] = []
     images: list[ViewImages] = []
     render_s = 0.0
-    for k, i in enumerate(tqdm(indices, desc=f"eval {split}", unit="view", disable=not show_progress)):
+    bar = tqdm(indices, desc=f"eval {split} ({mode})", unit="view", disable=not show_progress)
+    for k, i in enumerate(bar):
         cam = data.cameras[i]
         t0 = time.perf_counter()
         rgb = render_view(scene, cam, mode, data.background, sigma, options)
@@ -124,6 +125,7 @@ def evaluate_run(
         name = cam.name or f"view_{i:04d}"
         lp = lpips(gt, rgb, lpips_weights) if lpips_note is None else None
         views.append(ViewMetrics(index=i, name=name, psnr=psnr(gt, rgb), ssim=ssim(gt, rgb), lpips=lp))
+        bar.set_postfix(psnr=f"{np.mean([v.psnr for v in views]):.2f}")
         if k in shown:
             images.append(ViewImages(name=name, gt=gt, render=rgb))
 
