@@ -16,14 +16,6 @@ SPLITS = ("test", "train")
 REPORT_MAX_IMAGE_VIEWS = 24  # views whose pictures the report shows (evenly spaced); the table lists all of them
 
 
-def vertex_colors(scene, camera_center: np.ndarray) -> torch.Tensor:
-    """Per-vertex RGB [V,3] seen from `camera_center` [3] (normalised frame): SH with each vertex's view direction."""
-    from trisplat.scene.sh import eval_sh
-
-    c = torch.as_tensor(np.asarray(camera_center, dtype=np.float32))
-    return eval_sh(scene.sh, scene.positions - c)
-
-
 def soft_sigma(run) -> float:
     """The window sharpness to render a run softly with: the sigma the run had reached (state.json), else the
     config's final sigma. TODO(lead): wire a per-run override here if the trainer records a different evaluation
@@ -39,31 +31,33 @@ def soft_sigma(run) -> float:
 def render_view(scene, camera, mode: str, background, sigma: float | None = None, options: dict | None = None):
     """Render one camera of a TriangleScene: float32 numpy [H,W,3] in [0,1].
 
-    hard: opaque z-buffer (rasterize_hard) with per-vertex colours from SH; soft: the training renderer at `sigma`
-    with the vertices' opacities. options: extra RenderOptions fields for the soft renderer (near, tile_size, ...).
+    hard: the opaque z-buffer (rasterize_hard); soft: the training renderer at `sigma` with the vertices' opacities.
+    Both evaluate the SH colour of each vertex along its view direction. options: RenderOptions fields the run
+    trained with (near, tile_size, backend); the hard renderer takes only `near` from them.
     """
     from trisplat import render
 
+    options = dict(options or {})
     w2c = torch.as_tensor(camera.world_to_camera, dtype=torch.float32)
     K = torch.as_tensor(camera.K, dtype=torch.float32)
     bg = torch.as_tensor(np.asarray(background, dtype=np.float32))
     faces = scene.faces.to(torch.int32)
     with torch.no_grad():
         if mode == "hard":
-            colors = vertex_colors(scene, camera.center)
-            out = render.rasterize_hard(scene.positions, faces, colors, w2c, K, camera.width, camera.height, bg)
+            near = {"near": options["near"]} if "near" in options else {}
+            out = render.rasterize_hard(scene.positions, faces, scene.sh, w2c, K, camera.width, camera.height, bg,
+                                        **near)  # fmt: skip
         elif mode == "soft":
             if sigma is None:
                 raise ValueError("soft rendering needs sigma")
             out = render.rasterize(scene.positions, faces, scene.sh, scene.opacities(), sigma, w2c, K, camera.width,
-                                   camera.height, background=bg, **(options or {}))  # fmt: skip
+                                   camera.height, background=bg, **options)  # fmt: skip
         else:
             raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
-    rgb = out if isinstance(out, torch.Tensor) else out.rgb  # rasterize_hard may return the image or an output
-    return rgb.clamp(0.0, 1.0).cpu().numpy().astype(np.float32)
+    return out.rgb.clamp(0.0, 1.0).cpu().numpy().astype(np.float32)
 
 
-def _soft_options(config: dict) -> dict:
+def _render_options(config: dict) -> dict:
     """Renderer settings the run trained with that also matter at evaluation time."""
     return {k: config[k] for k in ("near", "tile_size", "backend") if k in config}
 
@@ -101,7 +95,7 @@ def evaluate_run(
     if max_views is not None:
         indices = indices[:max_views]
     sigma = soft_sigma(run) if mode == "soft" else None
-    options = _soft_options(run.config) if mode == "soft" else None
+    options = _render_options(run.config)
 
     lpips_note = None
     try:
