@@ -123,3 +123,22 @@ def test_bad_input_is_rejected_precisely():
         restricted_delaunay(np.full((10, 3), np.nan), soup.vertices, soup.faces)
     with pytest.raises(ValueError, match="out of range"):
         restricted_delaunay(np.random.rand(10, 3), soup.vertices, soup.faces + 1000)
+
+
+def test_points_on_flat_facets_give_closed_mesh():
+    # samples on a cube's faces: large exactly coplanar groups (the degenerate case of low-poly ground truth)
+    box = trimesh.creation.box(extents=(1, 1, 1))
+    pts, _ = trimesh.sample.sample_surface_even(box, 3000, seed=0)
+    faces, rep = restricted_delaunay_report(pts, box.vertices, box.faces)
+    assert rep.num_flat_tets > 0
+    st = _assert_closed_sphere(pts, faces)
+    assert st.num_faces == 2 * len(pts) - 4
+
+
+def test_spot_samples_give_closed_genus0_mesh():
+    from conftest import shared_data
+
+    spot = trimesh.load(shared_data("meshes/spot_triangulated.obj"), force="mesh")
+    pts, _ = trimesh.sample.sample_surface_even(spot, 20000, seed=0)
+    faces = restricted_delaunay(pts, spot.vertices, spot.faces)
+    _assert_closed_sphere(pts, faces)

@@ -1,6 +1,10 @@
-"""Soup to mesh: restricted Delaunay triangulation, cleanup, orientation and statistics."""
+"""Soup to mesh: restricted Delaunay triangulation, cleanup, orientation and statistics.
+
+(`restricted_delaunay` itself is imported from `trisplat.mesh.restricted_delaunay`: re-exporting it here would hide
+the module of the same name.)
+"""
 from trisplat.mesh.cleanup import CleanupConfig, CleanupResult, clean_mesh, weld_vertices
-from trisplat.mesh.restricted_delaunay import RDTReport, restricted_delaunay, restricted_delaunay_report
+from trisplat.mesh.restricted_delaunay import RDTReport, restricted_delaunay_report
 from trisplat.mesh.stats import MeshStats, mesh_statistics
 
 __all__ = [
@@ -10,7 +14,6 @@ __all__ = [
     "RDTReport",
     "clean_mesh",
     "mesh_statistics",
-    "restricted_delaunay",
     "restricted_delaunay_report",
     "weld_vertices",
 ]

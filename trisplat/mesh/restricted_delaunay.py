@@ -7,9 +7,12 @@ hull has one tetrahedron and its dual edge is the ray from that circumcentre alo
 Trumbore, `trisplat.mesh.bvh`). Kept faces are then oriented consistently (`trisplat.mesh.orient`), using the normal
 of the soup triangle each dual edge met as the hint for open pieces.
 
-Degenerate input: duplicate points are left out by Qhull (reported as unused vertices); co-spherical points are
-handled by Qhull's point at infinity (`Qz`); a flat tetrahedron (|det| tiny) gets its centroid as circumcentre, so
-its dual edges are short; coplanar input is triangulated in its plane (2D Delaunay) with dual edges crossing the plane;
+Degenerate input: exact duplicate points are left out (the first copy is used); the points are jittered by
+`JITTER` bounding-box diagonals (fixed seed; the output keeps the exact positions) so that coplanar and co-spherical
+groups get one consistent triangulation (as a symbolic perturbation would) instead of rounding noise; co-spherical
+points are also handled by Qhull's point at infinity (`Qz`); a flat tetrahedron (coplanar points; |det| tiny or circumcentre beyond
+`HULL_RAY_LENGTH` diagonals) gets its Voronoi vertex that far along its plane normal, above its circumcircle, so
+exactly one of the two triangulations of its points is kept; coplanar input is triangulated in its plane (2D Delaunay) with dual edges crossing the plane;
 collinear input and fewer than 4 points give no faces; if Qhull still fails it is retried once with joggle (`QJ`).
 """
 from __future__ import annotations
@@ -28,6 +31,8 @@ QHULL_OPTIONS = "Qbb Qc Qz Q12"  # scipy's default for 3D (Qt is always on)
 QHULL_JOGGLE_OPTIONS = "QJ Qbb Qz"
 HULL_RAY_LENGTH = 4.0  # bounding-box diagonals of (vertices + soup): length of the dual ray of a hull face
 FLAT_RATIO = 1e-9  # smallest / largest singular value of the centred points below which the input counts as flat
+JITTER = 1e-7  # bounding-box diagonals: amplitude of the uniform jitter applied (for the triangulation only)
+JITTER_SEED = 0
 FLAT_TET_EPS = 1e-12  # |det| / (|u| |v| |w|) below which a tetrahedron counts as flat (dimensionless)
 
 _OTHER = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]], np.int64)  # face opposite local vertex i
@@ -63,7 +68,11 @@ class RDTReport:
 
 
 @nb.njit(parallel=True, cache=True)
-def _circumcentres(points, simplices, flat_eps):
+def _circumcentres(points, simplices, flat_eps, far):
+    """Circumcentres [T,3] of tetrahedra and a flag for flat ones. A flat tetrahedron (|det| tiny, or circumcentre
+    farther than `far` from it) has its Voronoi vertex at (or beyond) infinity along the normal of its plane, in a
+    direction that rounding noise makes arbitrary: it is placed at `far` along that normal from the circumcentre
+    of its largest face, on the side the raw computation pointed to (+normal when undetermined)."""
     n = simplices.shape[0]
     out = np.empty((n, 3))
     flat = np.zeros(n, np.bool_)
@@ -77,11 +86,42 @@ def _circumcentres(points, simplices, flat_eps):
         uv = np.cross(u, v)
         det = 2.0 * (u[0] * vw[0] + u[1] * vw[1] + u[2] * vw[2])
         lu, lv, lw = np.dot(u, u), np.dot(v, v), np.dot(w, w)
-        if abs(det) <= 2.0 * flat_eps * np.sqrt(lu * lv * lw):
-            flat[t] = True
-            out[t] = a + (u + v + w) / 4.0
-        else:
-            out[t] = a + (lu * vw + lv * wu + lw * uv) / det
+        is_flat = abs(det) <= 2.0 * flat_eps * np.sqrt(lu * lv * lw)
+        raw = a.copy()
+        if not is_flat:
+            raw = a + (lu * vw + lv * wu + lw * uv) / det
+            off = raw - a
+            is_flat = np.dot(off, off) > far * far
+        if not is_flat:
+            out[t] = raw
+            continue
+        flat[t] = True
+        # largest face of the tetrahedron: its plane and circumcircle stand for the flat tetrahedron's
+        best = -1.0
+        cc = a.copy()
+        nrm = np.zeros(3)
+        for k in range(4):
+            p0 = points[simplices[t, (k + 1) % 4]]
+            e1 = points[simplices[t, (k + 2) % 4]] - p0
+            e2 = points[simplices[t, (k + 3) % 4]] - p0
+            c = np.cross(e1, e2)
+            cc2 = np.dot(c, c)
+            if cc2 > best:
+                best = cc2
+                nrm = c
+                if cc2 > 0.0:
+                    cc = p0 + (np.dot(e1, e1) * np.cross(e2, c) + np.dot(e2, e2) * np.cross(c, e1)) / (2.0 * cc2)
+                else:
+                    cc = p0
+        ln = np.sqrt(best)
+        if ln == 0.0:
+            out[t] = a + (u + v + w) / 4.0  # all four points collinear or coincident
+            continue
+        nrm = nrm / ln
+        side = 1.0
+        if not np.array_equal(raw, a) and np.dot(raw - cc, nrm) < 0.0:
+            side = -1.0
+        out[t] = cc + side * far * nrm
     return out, flat
 
 
@@ -140,7 +180,16 @@ def restricted_delaunay(vertices: np.ndarray, soup_vertices: np.ndarray, soup_fa
     if sing[2] <= FLAT_RATIO * sing[0]:
         faces, p0, p1 = _planar_dual(v, centre, basis, ray_len, rep)
     else:
-        faces, p0, p1 = _spatial_dual(v, ray_len, rep, t0)
+        # exact duplicates out; a tiny fixed-seed jitter so that coplanar / co-spherical groups (points sampled on
+        # the flat facets of a mesh, grids) get one consistent Delaunay triangulation instead of rounding noise
+        uniq, first = np.unique(v, axis=0, return_index=True)
+        n_dup = len(v) - len(uniq)
+        if n_dup:
+            rep.notes.append(f"{n_dup} duplicate vertices left out (their first copy is used)")
+        jitter = JITTER * max(diag, 1e-30)
+        uj = v[first] + np.random.default_rng(JITTER_SEED).uniform(-jitter, jitter, (len(first), 3))
+        faces, p0, p1 = _spatial_dual(uj, ray_len, rep, t0)
+        faces = first[faces]
     rep.dual_s = time.perf_counter() - t0 - rep.qhull_s
 
     t0 = time.perf_counter()
@@ -187,10 +236,11 @@ def _spatial_dual(v: np.ndarray, ray_len: float, rep: RDTReport, t_start: float)
     simplices = np.ascontiguousarray(tri.simplices, dtype=np.int64)
     neighbors = tri.neighbors
     rep.num_tets = len(simplices)
-    cc, flat = _circumcentres(v, simplices, FLAT_TET_EPS)
+    cc, flat = _circumcentres(v, simplices, FLAT_TET_EPS, ray_len)
     rep.num_flat_tets = int(flat.sum())
     if rep.num_flat_tets:
-        rep.notes.append(f"{rep.num_flat_tets} flat tetrahedra: centroid used as their circumcentre")
+        rep.notes.append(f"{rep.num_flat_tets} flat tetrahedra (coplanar points): Voronoi vertex put "
+                         f"{HULL_RAY_LENGTH} bounding-box diagonals along their plane normal")
     in_tet = np.zeros(len(v), bool)
     in_tet[simplices.reshape(-1)] = True
     n_unused = len(v) - int(in_tet.sum())
