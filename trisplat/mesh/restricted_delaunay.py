@@ -35,7 +35,6 @@ JITTER = 1e-7  # bounding-box diagonals: amplitude of the uniform jitter applied
 JITTER_SEED = 0
 FLAT_TET_EPS = 1e-12  # |det| / (|u| |v| |w|) below which a tetrahedron counts as flat (dimensionless)
 
-_OTHER = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]], np.int64)  # face opposite local vertex i
 
 
 @dataclass
@@ -247,25 +246,62 @@ def _spatial_dual(v: np.ndarray, ray_len: float, rep: RDTReport, t_start: float)
     if n_unused:
         rep.notes.append(f"{n_unused} vertices are in no tetrahedron (duplicates or coplanar with Qhull's tolerance)")
 
-    owner = np.arange(len(simplices))[:, None]
-    interior = neighbors > owner  # each interior face once, from its lower-numbered tetrahedron
-    hull = neighbors < 0
-    t_int, i_int = np.nonzero(interior)
-    t_hull, i_hull = np.nonzero(hull)
-    rep.num_interior_faces, rep.num_hull_faces = len(t_int), len(t_hull)
-    faces_int = simplices[t_int[:, None], _OTHER[i_int]]
-    faces_hull = simplices[t_hull[:, None], _OTHER[i_hull]]
-    p0_int, p1_int = cc[t_int], cc[neighbors[t_int, i_int]]
-    # hull faces: ray from the circumcentre along the outward normal (away from the opposite vertex)
-    f = v[faces_hull]
-    n = np.cross(f[:, 1] - f[:, 0], f[:, 2] - f[:, 0])
-    opposite = v[simplices[t_hull, i_hull]]
-    n *= np.where(np.einsum("ij,ij->i", n, opposite - f[:, 0]) > 0, -1.0, 1.0)[:, None]
-    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
-    p0_hull = cc[t_hull]
-    p1_hull = p0_hull + ray_len * n
-    faces = np.concatenate([faces_int, faces_hull])
-    return faces, np.concatenate([p0_int, p0_hull]), np.concatenate([p1_int, p1_hull])
+    neighbors = np.ascontiguousarray(neighbors, dtype=np.int64)
+    n_int = _count_dual(neighbors, True)
+    n_hull = _count_dual(neighbors, False)
+    rep.num_interior_faces, rep.num_hull_faces = int(n_int.sum()), int(n_hull.sum())
+    offsets = np.concatenate([[0], np.cumsum(n_int + n_hull)])
+    return _dual_edges(v, simplices, neighbors, cc, ray_len, offsets)
+
+
+@nb.njit(parallel=True, cache=True)
+def _count_dual(neighbors, interior):
+    """Per tetrahedron: its interior faces counted once (from the lower-numbered side), or its hull faces."""
+    n = neighbors.shape[0]
+    out = np.zeros(n, np.int64)
+    for t in nb.prange(n):
+        c = 0
+        for i in range(4):
+            nb_t = neighbors[t, i]
+            if (interior and nb_t > t) or (not interior and nb_t < 0):
+                c += 1
+        out[t] = c
+    return out
+
+
+@nb.njit(parallel=True, cache=True)
+def _dual_edges(points, simplices, neighbors, cc, ray_len, offsets):
+    """Faces [N,3] (the face opposite local vertex i of tetrahedron t) and dual edges p0 -> p1: to the neighbour's
+    circumcentre for interior faces; a ray of length `ray_len` along the outward normal for hull faces."""
+    total = offsets[-1]
+    faces = np.empty((total, 3), np.int64)
+    p0 = np.empty((total, 3))
+    p1 = np.empty((total, 3))
+    for t in nb.prange(neighbors.shape[0]):
+        k = offsets[t]
+        for i in range(4):
+            nb_t = neighbors[t, i]
+            if nb_t >= 0 and nb_t < t:
+                continue
+            j = 0
+            for m in range(4):
+                if m != i:
+                    faces[k, j] = simplices[t, m]
+                    j += 1
+            p0[k] = cc[t]
+            if nb_t >= 0:
+                p1[k] = cc[nb_t]
+            else:
+                a = points[faces[k, 0]]
+                nrm = np.cross(points[faces[k, 1]] - a, points[faces[k, 2]] - a)
+                if np.dot(nrm, points[simplices[t, i]] - a) > 0.0:
+                    nrm = -nrm
+                ln = np.sqrt(np.dot(nrm, nrm))
+                if ln > 0.0:
+                    nrm = nrm / ln
+                p1[k] = cc[t] + ray_len * nrm
+            k += 1
+    return faces, p0, p1
 
 
 def _planar_dual(v: np.ndarray, centre: np.ndarray, basis: np.ndarray, ray_len: float, rep: RDTReport):
