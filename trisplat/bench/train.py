@@ -16,6 +16,8 @@ SCENES = {
 }
 
 
+PROG = "trisplat bench train"
+
 @dataclass
 class TrainBenchArgs:
     """Train each scene for the same wall time and score the opaque mesh (hard render) on its test split."""
@@ -42,7 +44,7 @@ def _psnr_at_fractions(history: list[dict], fractions=(0.25, 0.5, 0.75)) -> list
 
 
 def main(argv: list[str]) -> int:
-    args = tyro.cli(TrainBenchArgs, args=argv, description=TrainBenchArgs.__doc__)
+    args = tyro.cli(TrainBenchArgs, args=argv, description=TrainBenchArgs.__doc__, prog=PROG)
     from trisplat.commands.train import TrainArgs, run_training
     from trisplat.run import open_run
 

@@ -12,6 +12,8 @@ import tyro
 from trisplat import run as layout
 
 
+PROG = "trisplat demo"
+
 @dataclass
 class DemoArgs:
     """Generate a procedural coloured scene (rendered by trimesh's ray caster, an independent renderer), train it
@@ -75,7 +77,7 @@ LPIPS {fmt(metrics.get('lpips'), 3)} (soft render PSNR {fmt(metrics.get('soft_ps
 
 
 def main(argv: list[str]) -> int:
-    args = tyro.cli(DemoArgs, args=argv, description=DemoArgs.__doc__)
+    args = tyro.cli(DemoArgs, args=argv, description=DemoArgs.__doc__, prog=PROG)
     from trisplat.commands.train import TrainArgs, run_training
 
     out = args.out

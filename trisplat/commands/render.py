@@ -9,6 +9,8 @@ import tyro
 from tqdm import tqdm
 
 
+PROG = "trisplat render"
+
 @dataclass
 class RenderArgs:
     """Render a trained run's cameras (hard, opaque mesh by default) so anyone can score them with their tools."""
@@ -45,7 +47,7 @@ def render_split(args: RenderArgs) -> list[Path]:
 
 
 def main(argv: list[str]) -> int:
-    args = tyro.cli(RenderArgs, args=argv, description=RenderArgs.__doc__)
+    args = tyro.cli(RenderArgs, args=argv, description=RenderArgs.__doc__, prog=PROG)
     try:
         paths = render_split(args)
     except FileExistsError as exc:

@@ -15,6 +15,8 @@ from trisplat import run as layout
 from trisplat.train.config import PRESETS, TrainConfig, make_config
 
 
+PROG = "trisplat train"
+
 @dataclass
 class TrainArgs:
     """Train a scene: photos (or a generated scene) -> an opaque triangle mesh in OUT."""
@@ -88,7 +90,7 @@ def run_training(args: TrainArgs):
 
 
 def main(argv: list[str]) -> int:
-    args = tyro.cli(TrainArgs, args=argv, description=TrainArgs.__doc__)
+    args = tyro.cli(TrainArgs, args=argv, description=TrainArgs.__doc__, prog=PROG)
     try:
         result = run_training(args)
     except FileExistsError as exc:

@@ -16,10 +16,13 @@ class PruneResult:
 
 
 def prune(ts: ops.TrainableScene, threshold: float, max_screen_px: float | None = None,
-          min_faces: int = 1) -> PruneResult:
+          max_fraction: float = 1.0, min_faces: int = 1) -> PruneResult:
     """Drop faces whose min vertex opacity or running max blending weight is <= threshold, and faces whose running
-    maximum projected edge length exceeds max_screen_px (pixels). Never removes all faces: at least `min_faces`
-    (the most important ones) are kept, so training can always continue."""
+    maximum projected edge length exceeds max_screen_px (pixels).
+
+    At most `max_fraction` of the faces go in one call (those with the lowest max blending weight first) and at
+    least `min_faces` stay, so a run whose opacities have not risen yet (a very short schedule) thins out over
+    several events instead of collapsing to nothing."""
     F = ts.num_faces
     with torch.no_grad():
         o = ts.opacities()
@@ -28,8 +31,11 @@ def prune(ts: ops.TrainableScene, threshold: float, max_screen_px: float | None 
         remove = (face_opacity <= threshold) | (weight <= threshold)
         if max_screen_px is not None:
             remove |= ts.face_stat("max_screen_px") > max_screen_px
-        if int((~remove).sum()) < min(min_faces, F):
-            keep_idx = torch.topk(weight, min(min_faces, F)).indices
+        keep_at_least = min(F, max(min_faces, F - int(max_fraction * F)))
+        if int((~remove).sum()) < keep_at_least:
+            # keep the most important of the condemned faces (oversized ones are not spared)
+            priority = torch.where(remove, weight, torch.full_like(weight, float("inf")))
+            keep_idx = torch.topk(priority, keep_at_least).indices
             remove[keep_idx] = False
     n_removed = int(remove.sum())
     ops.keep_faces(ts, ~remove)
@@ -38,9 +44,12 @@ def prune(ts: ops.TrainableScene, threshold: float, max_screen_px: float | None 
 
 
 def final_max_weight_prune(ts: ops.TrainableScene, max_weight: torch.Tensor, threshold: float) -> PruneResult:
-    """The final pass: `max_weight` [F] measured over all training views; drop faces at or below threshold."""
+    """The final pass: `max_weight` [F] measured over all training views; drop faces at or below threshold.
+    A pass that would remove every face is skipped (nothing removed): an empty mesh helps nobody."""
     F = ts.num_faces
     keep = max_weight > threshold
+    if not keep.any():
+        return PruneResult(F, 0, 0)
     ops.keep_faces(ts, keep)
     v_removed = ops.remove_orphan_vertices(ts)
     return PruneResult(F, int((~keep).sum()), v_removed)

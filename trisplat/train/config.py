@@ -69,6 +69,8 @@ class TrainConfig:
     prune_max_screen_frac: float = 0.875
     """Faces whose projected longest edge exceeds this fraction of the image's larger side are pruned
     (TS+ uses 1400 px on ~1600 px images)."""
+    prune_max_fraction: float = 0.5
+    """At most this fraction of the faces is removed by one pruning event (a guard for short schedules)."""
     final_max_weight_pass: bool = True
     """After training, render all training views and drop faces whose max blending weight <= final_max_weight."""
     final_max_weight: float = 0.5

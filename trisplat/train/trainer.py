@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -69,6 +70,7 @@ class Trainer:
         self.rollbacks = 0
         self.wall_s = 0.0
         self.connected = False
+        self._last_prune = -(10**9)
         self.run_dir.mkdir(parents=True, exist_ok=True)
         if resume:
             ckpt = load_checkpoint(self.run_dir / layout.CHECKPOINT)
@@ -92,6 +94,7 @@ class Trainer:
     # ----------------------------------------------------------------------------------------------- bookkeeping
     def _extra(self) -> dict:
         return {"clock": [self.clock.total, self.clock.anchor_step, self.clock.anchor_p], "wall_s": self.wall_s,
+                "last_prune": self._last_prune,
                 "lr_scale": self.lr_scale, "rollbacks": self.rollbacks, "connected": self.connected,
                 "normalization": np.asarray(self.data.normalization).tolist()}
 
@@ -105,6 +108,7 @@ class Trainer:
         self.lr_scale = float(ckpt["extra"]["lr_scale"])
         self.rollbacks = int(ckpt["extra"]["rollbacks"])
         self.connected = bool(ckpt["extra"].get("connected", False))
+        self._last_prune = int(ckpt["extra"].get("last_prune", -(10**9)))
 
     def _write_config(self, data_options: dict, data_path: str | None) -> None:
         cfg = {**self.cfg.to_dict(), "data": str(data_path or self.data.root or ""), "data_options": data_options}
@@ -198,10 +202,13 @@ class Trainer:
         if cfg.connect_at is not None and not self.connected and p >= cfg.connect_at:
             self._connect()
         seen_all_views = self.step >= n_train
-        if seen_all_views and not self.connected and schedules.crossed(
+        # pruning judges faces by statistics over every view, so two prunes are at least one epoch apart
+        if seen_all_views and not self.connected and self.step - self._last_prune >= n_train and schedules.crossed(
                 p_prev, p, cfg.prune_from, cfg.prune_until, cfg.prune_interval):
             cam = self.data.cameras[self.data.train_indices[0]]
-            prune(ts, schedules.prune_threshold(p, cfg), cfg.prune_max_screen_frac * max(cam.width, cam.height))
+            prune(ts, schedules.prune_threshold(p, cfg), cfg.prune_max_screen_frac * max(cam.width, cam.height),
+                  cfg.prune_max_fraction)
+            self._last_prune = self.step
         if seen_all_views and not self.connected and schedules.crossed(
                 p_prev, p, cfg.densify_from, cfg.densify_until, cfg.densify_interval):
             densify(ts, cfg.densify_growth, cfg.max_vertices, cfg.densify_largest, cfg.min_face_px, self.generator)
@@ -242,8 +249,22 @@ class Trainer:
         remaining = max(int(budget * 0.85 / max(measured_s_per_step, 1e-4)), 1)
         self.clock.replan(self.step, self.step + remaining)
 
+    def warm_up_kernels(self) -> float:
+        """Compile the renderer's kernels (first use only; Numba caches them on disk) outside the timed loop, so
+        wall time and --minutes planning measure training. Returns the seconds it took."""
+        t0 = time.perf_counter()
+        pos = torch.tensor([[-0.5, -0.5, 2.0], [0.5, -0.5, 2.0], [0.0, 0.5, 2.0]], requires_grad=True)
+        out = rasterize(pos, torch.tensor([[0, 1, 2]], dtype=torch.int32), torch.full((3, 3), 0.5),
+                        torch.full((3,), 0.5), 0.5, torch.eye(4), torch.tensor([[8.0, 0, 4], [0, 8.0, 4], [0, 0, 1]]),
+                        8, 8, background=self.background, backend=self.cfg.backend)
+        (out.rgb.sum() + out.depth.sum() + out.normal.sum()).backward()
+        return time.perf_counter() - t0
+
     def train(self, stop_after: int | None = None) -> TrainResult:
         cfg = self.cfg
+        if self.show_progress:
+            print("preparing the renderer (compiles once, then cached) ...", file=sys.stderr, flush=True)
+        self.warm_up_kernels()
         replan_at = [0.02, 0.2, 0.5, 0.8] if cfg.minutes else []
         window: list[float] = []
         bar = tqdm(total=self.clock.total, initial=self.step, disable=not self.show_progress, unit="step",
