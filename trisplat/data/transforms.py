@@ -154,14 +154,38 @@ def read_blender(root: Path) -> RawCapture:
     if not views:
         raise ValueError(f"{root}: empty scene: no frames in {', '.join(str(f) for f in files)}")
     half = BLENDER_OBJECT_HALF_SIDE
+    points, colors = read_point_ply(root / BLENDER_POINTS) if (root / BLENDER_POINTS).is_file() else (None, None)
     return RawCapture(
         format="blender",
         root=root,
         views=views,
         split=split,
+        points=points,
+        point_colors=colors,
         object_bounds=np.array([[-half] * 3, [half] * 3]),
-        source_files=files,
+        source_files=files + ([root / BLENDER_POINTS] if points is not None else []),
     )
+
+
+BLENDER_POINTS = "points3d.ply"  # optional sparse points beside a Blender capture (trisplat's synthetic scenes)
+
+
+def read_point_ply(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
+    """Points float64 [P,3] (capture frame) and RGB float32 [P,3] in [0,1] (None without colours) from a PLY."""
+    import trimesh
+
+    try:
+        cloud = trimesh.load(path, process=False)
+    except Exception as exc:  # noqa: BLE001 - trimesh raises many types for malformed files
+        raise ValueError(f"{path}: not a readable point cloud PLY ({exc})") from exc
+    pts = np.asarray(getattr(cloud, "vertices", np.zeros((0, 3))), dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3 or not len(pts):
+        raise ValueError(f"{path}: no points in this PLY")
+    if not np.isfinite(pts).all():
+        raise ValueError(f"{path}: non-finite point coordinates")
+    col = getattr(cloud, "colors", None)
+    colors = np.asarray(col, dtype=np.float32)[:, :3] / 255.0 if col is not None and len(col) == len(pts) else None
+    return pts, colors
 
 
 def read_ngp(root: Path, path: Path | None = None) -> RawCapture:
