@@ -98,3 +98,22 @@ def test_refuses_to_overwrite_a_run(tiny_scene, tmp_path):
     prepare_run_dir(run_dir, resume=False, force=True)  # moved aside, not deleted
     assert not run_dir.exists()
     assert len(list(tmp_path.glob("run.old-*"))) == 1
+
+
+def test_meshsplatting_switch_replaces_soup_by_connected_mesh(tiny_scene, tmp_path):
+    from trisplat.mesh.stats import mesh_statistics
+
+    tr = _trainer(tiny_scene, tmp_path / "ms", steps=30, connect_at=0.5, densify_until=0.45,
+                  final_max_weight_pass=False)
+    soup_ratio = tr.ts.num_vertices / tr.ts.num_faces  # 3.0: three private vertices per face
+    result = tr.train()
+    assert tr.connected and soup_ratio == 3.0
+    pos, faces = result.scene.positions.numpy(), result.scene.faces.numpy()
+    stats = mesh_statistics(pos, faces)
+    # the restricted Delaunay mesh shares vertices between faces: far from a soup's 3 vertices per face
+    assert stats.num_vertices / stats.num_faces < 1.0
+    assert stats.connected_components < stats.num_faces / 4
+    # the vertex table kept its rows (no vertex moved by the switch beyond training updates), faces are valid
+    assert faces.max() < len(pos) and faces.min() >= 0
+    m = json.loads((tmp_path / "ms" / layout.METRICS).read_text())
+    assert m["final_prune"] is None and m["faces"] == len(faces)

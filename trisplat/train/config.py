@@ -129,8 +129,9 @@ PRESETS: dict[str, dict] = {
     # The paper's schedule.
     "full": dict(steps=30_000, sh_degree=3, max_vertices=2_000_000, supersample_4x_from=0.95),
     # MeshSplatting: soup initialisation, stage 2 restricted Delaunay at ~11k/30k, fine-tuning after.
+    # No pruning after the switch and no final max-weight pass: both would open holes in the connected surface.
     "meshsplatting": dict(steps=7_000, init="soup", connect_at=11_000 / PAPER_STEPS,
-                          densify_until=10_000 / PAPER_STEPS, max_vertices=300_000),
+                          densify_until=10_000 / PAPER_STEPS, max_vertices=300_000, final_max_weight_pass=False),
 }
 
 

@@ -214,7 +214,7 @@ class Trainer:
             densify(ts, cfg.densify_growth, cfg.max_vertices, cfg.densify_largest, cfg.min_face_px, self.generator)
 
     def _connect(self) -> None:
-        from trisplat.mesh import connect_scene
+        from trisplat.mesh.connect import connect_scene
 
         connected, _report = connect_scene(self.ts.to_scene())
         ops.set_faces(self.ts, connected.faces)
