@@ -142,3 +142,15 @@ def test_spot_samples_give_closed_genus0_mesh():
     pts, _ = trimesh.sample.sample_surface_even(spot, 20000, seed=0)
     faces = restricted_delaunay(pts, spot.vertices, spot.faces)
     _assert_closed_sphere(pts, faces)
+
+
+def test_qhull_failure_falls_back_to_joggle(monkeypatch):
+    import trisplat.mesh.restricted_delaunay as rd
+
+    monkeypatch.setattr(rd, "QHULL_OPTIONS", "Qbb Qc Qz Q12 Qnot-an-option")  # makes Qhull raise
+    soup = trimesh.creation.icosphere(3)
+    pts, _ = trimesh.sample.sample_surface_even(soup, 600, seed=2)
+    faces, rep = rd.restricted_delaunay_report(pts, soup.vertices, soup.faces)
+    assert rep.joggled and rep.qhull_options == rd.QHULL_JOGGLE_OPTIONS
+    assert any("retried with joggle" in n for n in rep.notes)
+    _assert_closed_sphere(pts, faces)

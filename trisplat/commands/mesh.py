@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import tyro
@@ -27,7 +28,7 @@ class MeshConfig:
     """drop pieces with less than this fraction of the total area; 0 keeps all"""
     repair_non_manifold: bool = True
     """at edges with more than two faces keep the two best-shaped faces (--no-repair-non-manifold keeps all)"""
-    up: str | None = None
+    up: Literal["y", "z"] | None = None
     """rotate the export so the capture's up becomes +Y ('y') or +Z ('z'); default keeps the capture's axes"""
 
 

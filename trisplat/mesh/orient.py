@@ -39,19 +39,57 @@ def edge_table(faces: np.ndarray) -> EdgeTable:
     return EdgeTable(edges, inverse.reshape(-1, 3).astype(np.int64), counts.astype(np.int64))
 
 
+@nb.njit(cache=True)
+def _pair_slots(edge_of, edge_face_count):
+    """For every edge used by exactly two faces, its two slots (3*face + k) in first-seen order."""
+    first = np.full(edge_face_count.shape[0], -1, np.int64)
+    pairs = np.empty((edge_of.shape[0] // 2 + 1, 2), np.int64)
+    n = 0
+    for slot in range(edge_of.shape[0]):
+        e = edge_of[slot]
+        if edge_face_count[e] != 2:
+            continue
+        if first[e] < 0:
+            first[e] = slot
+        else:
+            pairs[n, 0] = first[e]
+            pairs[n, 1] = slot
+            n += 1
+    return pairs[:n]
+
+
 def _manifold_pairs(faces: np.ndarray, table: EdgeTable):
     """Face pairs across manifold edges and whether they traverse the shared edge in the same direction."""
     F = len(faces)
-    edge_of = table.face_edges.reshape(-1)  # [3F], directed edge k of face f at 3f+k
-    manifold = table.edge_face_count[edge_of] == 2
-    slots = np.nonzero(manifold)[0]
-    order = np.argsort(edge_of[slots], kind="stable")
-    slots = slots[order].reshape(-1, 2)  # two slots per manifold edge
+    slots = _pair_slots(table.face_edges.reshape(-1), table.edge_face_count)
     fa, fb = slots[:, 0] // 3, slots[:, 1] // 3
     start = faces.reshape(-1)  # directed edge at slot s starts at faces[f, k]
     same_dir = start[slots[:, 0]] == start[slots[:, 1]]
     keep = fa != fb
     return fa[keep], fb[keep], same_dir[keep], F
+
+
+@nb.njit(cache=True)
+def _csr(F, fa, fb, same_dir):
+    """Symmetric face adjacency in CSR form (counting sort), with the parity of each link."""
+    indptr = np.zeros(F + 1, np.int64)
+    for k in range(fa.shape[0]):
+        indptr[fa[k] + 1] += 1
+        indptr[fb[k] + 1] += 1
+    for f in range(F):
+        indptr[f + 1] += indptr[f]
+    fill = indptr[:-1].copy()
+    nbr = np.empty(2 * fa.shape[0], np.int64)
+    par = np.empty(2 * fa.shape[0], np.bool_)
+    for k in range(fa.shape[0]):
+        a, b = fa[k], fb[k]
+        nbr[fill[a]] = b
+        par[fill[a]] = same_dir[k]
+        fill[a] += 1
+        nbr[fill[b]] = a
+        par[fill[b]] = same_dir[k]
+        fill[b] += 1
+    return indptr, nbr, par
 
 
 @nb.njit(cache=True)
@@ -106,16 +144,9 @@ def orient_faces(vertices: np.ndarray, faces: np.ndarray, hint_normals: np.ndarr
         return faces.astype(np.int32), OrientReport(0, 0, 0)
     table = edge_table(faces)
     fa, fb, same_dir, _ = _manifold_pairs(faces, table)
-    # symmetric CSR adjacency; parity = neighbours need opposite flips
-    src = np.concatenate([fa, fb])
-    dst = np.concatenate([fb, fa])
-    par = np.concatenate([same_dir, same_dir])
-    order = np.argsort(src, kind="stable")
-    src, dst, par = src[order], dst[order], par[order]
-    indptr = np.zeros(F + 1, np.int64)
-    np.add.at(indptr, src + 1, 1)
-    indptr = np.cumsum(indptr)
-    flip, comp, n_comp = _bfs_flip(F, indptr, dst.astype(np.int64), par.astype(np.bool_))
+    # symmetric adjacency; parity = the two faces need opposite flips to agree
+    indptr, nbr, par = _csr(F, fa, fb, same_dir)
+    flip, comp, n_comp = _bfs_flip(F, indptr, nbr, par)
 
     # orient each piece as a whole
     tri = vertices[faces]

@@ -28,7 +28,7 @@ from trisplat.mesh.bvh import build_bvh, segment_any_hit
 from trisplat.mesh.orient import orient_faces
 
 QHULL_OPTIONS = "Qbb Qc Qz Q12"  # scipy's default for 3D (Qt is always on)
-QHULL_JOGGLE_OPTIONS = "QJ Qbb Qz"
+QHULL_JOGGLE_OPTIONS = "QJ Qbb"  # Qz (point at infinity) would leak into the simplices with QJ
 HULL_RAY_LENGTH = 4.0  # bounding-box diagonals of (vertices + soup): length of the dual ray of a hull face
 FLAT_RATIO = 1e-9  # smallest / largest singular value of the centred points below which the input counts as flat
 JITTER = 1e-7  # bounding-box diagonals: amplitude of the uniform jitter applied (for the triangulation only)
