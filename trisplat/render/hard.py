@@ -12,123 +12,188 @@ from trisplat.render.inputs import validate
 from trisplat.render.types import RenderOutput
 from trisplat.scene.sh import eval_sh
 
-# Per-face record (float32): edge lines n_k, d_k (9), 1/z plane in screen space A, B, C (3), s_k (3), 1/z per
-# vertex (3), camera-facing unit normal (3).
-H_EDGE, H_PLANE, H_S, H_ZI, H_NRM, H_N = 0, 9, 12, 15, 18, 21
-BANDS_PER_THREAD = 4  # horizontal image bands per Numba thread (load balance; each band scans all faces)
+DEPTH_SLABS = 8  # coarse front-to-back passes by nearest-vertex depth (more: better culling, more sorting)
+HIZ_BLOCK = 8  # pixels per side of the occlusion-culling blocks (each keeps the farthest depth it shows)
+BANDS_PER_THREAD = 1  # horizontal image bands per Numba thread (no atomics: a band owns its pixels)
 
 
 @njit(parallel=True, cache=True, fastmath=True)
-def hard_setup(pos, faces, w2c, K, near, width, height, rec, rows):
-    """Project and cull every face; rows[f] = (first, last) pixel row whose centre it may cover, (1, 0) if none."""
+def hard_setup(pos, faces, w2c, K, near, width, height, uvz, box, znear):
+    """Per face: screen vertices and 1/z (uvz [F,9]: u, v, 1/z per vertex), pixel-centre box [F,4] (first row,
+    last row, first column, last column; (1, 0, ...) when culled: behind the near plane, degenerate or
+    off-screen) and the largest 1/z (its nearest vertex)."""
     F = faces.shape[0]
     for f in prange(F):
-        rows[f, 0], rows[f, 1] = 1, 0
-        xc = np.empty((3, 3))
-        uv = np.empty((3, 2))
+        box[f, 0], box[f, 1] = 1, 0
+        znear[f] = 0.0
+        ok = True
         for k in range(3):
             v = faces[f, k]
-            for r in range(3):
-                xc[k, r] = w2c[r, 0] * pos[v, 0] + w2c[r, 1] * pos[v, 1] + w2c[r, 2] * pos[v, 2] + w2c[r, 3]
-        if min(xc[0, 2], min(xc[1, 2], xc[2, 2])) < near:
+            X = w2c[0, 0] * pos[v, 0] + w2c[0, 1] * pos[v, 1] + w2c[0, 2] * pos[v, 2] + w2c[0, 3]
+            Y = w2c[1, 0] * pos[v, 0] + w2c[1, 1] * pos[v, 1] + w2c[1, 2] * pos[v, 2] + w2c[1, 3]
+            Z = w2c[2, 0] * pos[v, 0] + w2c[2, 1] * pos[v, 1] + w2c[2, 2] * pos[v, 2] + w2c[2, 3]
+            if Z < near:
+                ok = False
+            zi = 1.0 / Z
+            uvz[f, 3 * k] = (K[0, 0] * X + K[0, 1] * Y) * zi + K[0, 2]
+            uvz[f, 3 * k + 1] = (K[1, 0] * X + K[1, 1] * Y) * zi + K[1, 2]
+            uvz[f, 3 * k + 2] = zi
+        if not ok:
             continue
-        for k in range(3):
-            uv[k, 0] = (K[0, 0] * xc[k, 0] + K[0, 1] * xc[k, 1]) / xc[k, 2] + K[0, 2]
-            uv[k, 1] = (K[1, 0] * xc[k, 0] + K[1, 1] * xc[k, 1]) / xc[k, 2] + K[1, 2]
-        umin = min(uv[0, 0], min(uv[1, 0], uv[2, 0]))
-        umax = max(uv[0, 0], max(uv[1, 0], uv[2, 0]))
-        vmin = min(uv[0, 1], min(uv[1, 1], uv[2, 1]))
-        vmax = max(uv[0, 1], max(uv[1, 1], uv[2, 1]))
-        if math.ceil(umin - 0.5) > math.floor(umax - 0.5) or umax < 0.5 or umin > width - 0.5:
+        u0, v0, u1, v1, u2, v2 = uvz[f, 0], uvz[f, 1], uvz[f, 3], uvz[f, 4], uvz[f, 6], uvz[f, 7]
+        if (u1 - u0) * (v2 - v0) - (v1 - v0) * (u2 - u0) == 0.0:
             continue
-        iy0 = max(0, int(math.ceil(vmin - 0.5)))
-        iy1 = min(height - 1, int(math.floor(vmax - 0.5)))
-        if iy0 > iy1:
+        ix0 = max(0, int(math.ceil(min(u0, min(u1, u2)) - 0.5)))
+        ix1 = min(width - 1, int(math.floor(max(u0, max(u1, u2)) - 0.5)))
+        iy0 = max(0, int(math.ceil(min(v0, min(v1, v2)) - 0.5)))
+        iy1 = min(height - 1, int(math.floor(max(v0, max(v1, v2)) - 0.5)))
+        if ix0 > ix1 or iy0 > iy1:
             continue
-        area2 = (uv[1, 0] - uv[0, 0]) * (uv[2, 1] - uv[0, 1]) - (uv[1, 1] - uv[0, 1]) * (uv[2, 0] - uv[0, 0])
-        if area2 == 0.0:
-            continue
-        sg = 1.0 if area2 > 0 else -1.0
-        aa = abs(area2)
-        lens = np.empty(3)
-        for k in range(3):
-            k1 = (k + 1) % 3
-            ex, ey = uv[k1, 0] - uv[k, 0], uv[k1, 1] - uv[k, 1]
-            ln = math.sqrt(ex * ex + ey * ey)
-            lens[k] = ln
-            nx, ny = sg * ey / ln, -sg * ex / ln
-            rec[f, 3 * k], rec[f, 3 * k + 1], rec[f, 3 * k + 2] = nx, ny, -(nx * uv[k, 0] + ny * uv[k, 1])
-        # 1/z is affine in screen space over a planar face: solve zinv(uv_k) = 1/z_k.
-        zi0, zi1, zi2 = 1.0 / xc[0, 2], 1.0 / xc[1, 2], 1.0 / xc[2, 2]
-        ax, ay = uv[1, 0] - uv[0, 0], uv[1, 1] - uv[0, 1]
-        bx, by = uv[2, 0] - uv[0, 0], uv[2, 1] - uv[0, 1]
-        A = ((zi1 - zi0) * by - (zi2 - zi0) * ay) / area2
-        B = ((zi2 - zi0) * ax - (zi1 - zi0) * bx) / area2
-        rec[f, H_PLANE], rec[f, H_PLANE + 1] = A, B
-        rec[f, H_PLANE + 2] = zi0 - A * uv[0, 0] - B * uv[0, 1]
-        for k in range(3):
-            rec[f, H_S + k] = lens[(k + 1) % 3] / aa
-        rec[f, H_ZI], rec[f, H_ZI + 1], rec[f, H_ZI + 2] = zi0, zi1, zi2
-        ax, ay, az = xc[1, 0] - xc[0, 0], xc[1, 1] - xc[0, 1], xc[1, 2] - xc[0, 2]
-        bx, by, bz = xc[2, 0] - xc[0, 0], xc[2, 1] - xc[0, 1], xc[2, 2] - xc[0, 2]
-        cx, cy, cz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
-        clen = math.sqrt(cx * cx + cy * cy + cz * cz)
-        if clen == 0.0:
-            continue
-        if cx * xc[0, 0] + cy * xc[0, 1] + cz * xc[0, 2] > 0:
-            clen = -clen
-        rec[f, H_NRM], rec[f, H_NRM + 1], rec[f, H_NRM + 2] = cx / clen, cy / clen, cz / clen
-        rows[f, 0], rows[f, 1] = iy0, iy1
+        box[f, 0], box[f, 1], box[f, 2], box[f, 3] = iy0, iy1, ix0, ix1
+        znear[f] = max(uvz[f, 2], max(uvz[f, 5], uvz[f, 8]))
+
+
+@njit(cache=True)
+def depth_order(box, znear, nslabs):
+    """Visible faces grouped by depth slab, nearest slab first (input order inside a slab): a counting sort."""
+    F = box.shape[0]
+    lo, hi = np.inf, 0.0
+    for f in range(F):
+        if box[f, 0] <= box[f, 1]:
+            z = 1.0 / znear[f]
+            lo = min(lo, z)
+            hi = max(hi, z)
+    scale = nslabs / (hi - lo) if hi > lo else 0.0
+    count = np.zeros(nslabs + 1, np.int64)
+    slab = np.empty(F, np.int64)
+    for f in range(F):
+        if box[f, 0] <= box[f, 1]:
+            s = min(nslabs - 1, int((1.0 / znear[f] - lo) * scale))
+            slab[f] = s
+            count[s + 1] += 1
+        else:
+            slab[f] = -1
+    for s in range(nslabs):
+        count[s + 1] += count[s]
+    order = np.empty(count[nslabs], np.int32)
+    for f in range(F):
+        s = slab[f]
+        if s >= 0:
+            order[count[s]] = f
+            count[s] += 1
+    return order
+
+
+@njit(cache=True, inline="always")
+def _clip(rnx, c, xlo, xhi):
+    """Clip the row's x range to the closed half-plane nx * x + c <= 0 (rnx = 1/nx, 0 for a horizontal edge)."""
+    if rnx > 0:
+        xhi = min(xhi, -c * rnx)
+    elif rnx < 0:
+        xlo = max(xlo, -c * rnx)
+    elif c > 0:
+        xlo = xhi + 1
+    return xlo, xhi
+
+
+@njit(cache=True, fastmath=True, inline="always")
+def _block_min(zbuf, width, y0, y1, x0, x1):
+    """Smallest 1/z over zbuf[y0:y1, x0:x1] (row-major, `width` wide); the common full 8-wide case unrolled."""
+    m = np.float32(np.inf)
+    if x1 - x0 == 8:
+        for yy in range(y0, y1):
+            r = yy * width + x0
+            m = min(m, min(min(min(zbuf[r], zbuf[r + 1]), min(zbuf[r + 2], zbuf[r + 3])),
+                           min(min(zbuf[r + 4], zbuf[r + 5]), min(zbuf[r + 6], zbuf[r + 7]))))
+    else:
+        for yy in range(y0, y1):
+            for xx in range(x0, x1):
+                m = min(m, zbuf[yy * width + xx])
+    return m
 
 
 @njit(parallel=True, cache=True, fastmath=True)
-def hard_zbuffer(rec, rows, width, height, nbands, zbuf, fid):
-    """Nearest face per pixel centre (largest 1/z); each band of rows is one task and scans every face."""
-    F = rec.shape[0]
-    band_h = (height + nbands - 1) // nbands
+def hard_zbuffer(uvz, box, znear, order, width, height, nbands, zbuf, fid):
+    """Nearest face per pixel centre (largest 1/z). Each band of rows is one task and walks the faces front to
+    back by slab. Occlusion culling: every HIZ_BLOCK x HIZ_BLOCK block keeps the smallest 1/z it shows (0 while a
+    pixel is empty); a face whose nearest vertex is farther than that in every block it touches is skipped."""
+    Bk = HIZ_BLOCK
+    band_h = ((height + nbands - 1) // nbands + Bk - 1) // Bk * Bk
+    nbx = (width + Bk - 1) // Bk
     evals = np.zeros(nbands, np.int64)
     for b in prange(nbands):
         r0, r1 = b * band_h, min(height, (b + 1) * band_h) - 1
+        if r0 > r1:
+            continue
+        hz = np.zeros(((r1 - r0) // Bk + 1) * nbx, np.float32)
         ne = 0
-        for f in range(F):
-            fr0, fr1 = rows[f, 0], rows[f, 1]
-            if fr1 < r0 or fr0 > r1 or fr0 > fr1:
+        for i in range(order.shape[0]):
+            f = order[i]
+            fr0, fr1 = box[f, 0], box[f, 1]
+            if fr1 < r0 or fr0 > r1:
                 continue
-            n0x, n0y, d0 = rec[f, 0], rec[f, 1], rec[f, 2]
-            n1x, n1y, d1 = rec[f, 3], rec[f, 4], rec[f, 5]
-            n2x, n2y, d2 = rec[f, 6], rec[f, 7], rec[f, 8]
-            A, B, C = rec[f, H_PLANE], rec[f, H_PLANE + 1], rec[f, H_PLANE + 2]
-            for iy in range(max(fr0, r0), min(fr1, r1) + 1):
-                py = iy + 0.5
-                xlo, xhi = 0.5, width - 0.5
+            ya, yb = max(fr0, r0), min(fr1, r1)
+            bx0, bx1 = box[f, 2] // Bk, box[f, 3] // Bk
+            by0, by1 = (ya - r0) // Bk, (yb - r0) // Bk
+            zn = znear[f]
+            visible = False
+            for by in range(by0, by1 + 1):
+                for bx in range(bx0, bx1 + 1):
+                    if zn > hz[by * nbx + bx]:
+                        visible = True
+            if not visible:
+                continue
+            # Edge functions (unnormalised; only signs matter here) and the screen-space plane of 1/z.
+            u0, v0, z0 = uvz[f, 0], uvz[f, 1], uvz[f, 2]
+            u1, v1, z1 = uvz[f, 3], uvz[f, 4], uvz[f, 5]
+            u2, v2, z2 = uvz[f, 6], uvz[f, 7], uvz[f, 8]
+            area2 = (u1 - u0) * (v2 - v0) - (v1 - v0) * (u2 - u0)
+            sg = np.float32(1.0) if area2 > 0 else np.float32(-1.0)
+            n0x, n0y = sg * (v1 - v0), -sg * (u1 - u0)
+            n1x, n1y = sg * (v2 - v1), -sg * (u2 - u1)
+            n2x, n2y = sg * (v0 - v2), -sg * (u0 - u2)
+            d0, d1, d2 = -(n0x * u0 + n0y * v0), -(n1x * u1 + n1y * v1), -(n2x * u2 + n2y * v2)
+            q0 = np.float32(1.0) / n0x if n0x != 0 else np.float32(0.0)
+            q1 = np.float32(1.0) / n1x if n1x != 0 else np.float32(0.0)
+            q2 = np.float32(1.0) / n2x if n2x != 0 else np.float32(0.0)
+            ia = np.float32(1.0) / area2
+            A = ((z1 - z0) * (v2 - v0) - (z2 - z0) * (v1 - v0)) * ia
+            Bp = ((z2 - z0) * (u1 - u0) - (z1 - z0) * (u2 - u0)) * ia
+            C = z0 - A * u0 - Bp * v0
+            ff = np.int32(f)
+            wrote = False
+            for iy in range(ya, yb + 1):
+                py = np.float32(iy) + np.float32(0.5)
                 c0, c1, c2 = n0y * py + d0, n1y * py + d1, n2y * py + d2
-                empty = False
-                for nx, c in ((n0x, c0), (n1x, c1), (n2x, c2)):
-                    if nx > 1e-12:
-                        xhi = min(xhi, -c / nx)
-                    elif nx < -1e-12:
-                        xlo = max(xlo, -c / nx)
-                    elif c > 0:
-                        empty = True
-                if empty or xlo > xhi:
+                xlo, xhi = _clip(q0, c0, np.float32(0.5), np.float32(width - 0.5))
+                xlo, xhi = _clip(q1, c1, xlo, xhi)
+                xlo, xhi = _clip(q2, c2, xlo, xhi)
+                if xlo > xhi:
                     continue
-                ixa = max(0, int(math.ceil(xlo - 0.5)))
-                ixb = min(width - 1, int(math.floor(xhi - 0.5)))
-                zrow = B * py + C
+                ixa = max(0, int(math.ceil(xlo - np.float32(0.5))))
+                ixb = min(width - 1, int(math.floor(xhi - np.float32(0.5))))
+                zrow = Bp * py + C
                 base = iy * width
+                ne += ixb - ixa + 1
                 for ix in range(ixa, ixb + 1):
-                    zi = A * (ix + 0.5) + zrow
-                    ne += 1
+                    zi = A * (np.float32(ix) + np.float32(0.5)) + zrow
                     if zi > zbuf[base + ix]:
                         zbuf[base + ix] = zi
-                        fid[base + ix] = f
+                        fid[base + ix] = ff
+                        wrote = True
+            if wrote:  # refresh the farthest depth of the blocks this face touched
+                for by in range(by0, by1 + 1):
+                    ya_, yb_ = r0 + by * Bk, min(r0 + by * Bk + Bk, r1 + 1)
+                    for bx in range(bx0, bx1 + 1):
+                        xa_, xb_ = bx * Bk, min(bx * Bk + Bk, width)
+                        hz[by * nbx + bx] = _block_min(zbuf, width, ya_, yb_, xa_, xb_)
         evals[b] = ne
     return evals.sum()
 
 
 @njit(parallel=True, cache=True, fastmath=True)
-def hard_resolve(rec, faces, colors, fid, width, height, perspective, bg, rgb, depth, normal):
-    """Interpolate the winning face's vertex colours, its depth and normal at every pixel centre."""
+def hard_resolve(uvz, pos, faces, w2c, colors, fid, width, height, perspective, bg, rgb, depth, normal):
+    """Interpolate the winning face's vertex colours, its depth and camera-facing normal at every pixel centre."""
     for iy in prange(height):
         py = iy + 0.5
         for ix in range(width):
@@ -140,18 +205,37 @@ def hard_resolve(rec, faces, colors, fid, width, height, perspective, bg, rgb, d
                 depth[iy, ix] = 0.0
                 continue
             px = ix + 0.5
-            L0 = rec[f, 0] * px + rec[f, 1] * py + rec[f, 2]
-            L1 = rec[f, 3] * px + rec[f, 4] * py + rec[f, 5]
-            L2 = rec[f, 6] * px + rec[f, 7] * py + rec[f, 8]
-            b0, b1, b2 = -L1 * rec[f, H_S], -L2 * rec[f, H_S + 1], -L0 * rec[f, H_S + 2]
-            zinv = rec[f, H_PLANE] * px + rec[f, H_PLANE + 1] * py + rec[f, H_PLANE + 2]
+            u0, v0, z0 = uvz[f, 0], uvz[f, 1], uvz[f, 2]
+            u1, v1, z1 = uvz[f, 3], uvz[f, 4], uvz[f, 5]
+            u2, v2, z2 = uvz[f, 6], uvz[f, 7], uvz[f, 8]
+            ia = 1.0 / ((u1 - u0) * (v2 - v0) - (v1 - v0) * (u2 - u0))
+            b0 = ((u1 - px) * (v2 - py) - (v1 - py) * (u2 - px)) * ia
+            b1 = ((u2 - px) * (v0 - py) - (v2 - py) * (u0 - px)) * ia
+            b2 = 1.0 - b0 - b1
+            zinv = b0 * z0 + b1 * z1 + b2 * z2
             if perspective:
-                b0, b1, b2 = b0 * rec[f, H_ZI] / zinv, b1 * rec[f, H_ZI + 1] / zinv, b2 * rec[f, H_ZI + 2] / zinv
-            v0, v1, v2 = faces[f, 0], faces[f, 1], faces[f, 2]
+                b0, b1, b2 = b0 * z0 / zinv, b1 * z1 / zinv, b2 * z2 / zinv
+            i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
             for c in range(3):
-                rgb[iy, ix, c] = b0 * colors[v0, c] + b1 * colors[v1, c] + b2 * colors[v2, c]
-                normal[iy, ix, c] = rec[f, H_NRM + c]
+                rgb[iy, ix, c] = b0 * colors[i0, c] + b1 * colors[i1, c] + b2 * colors[i2, c]
             depth[iy, ix] = 1.0 / zinv
+            # Camera-frame normal from the world positions (rotation only), turned towards the camera.
+            ax, ay, az = pos[i1, 0] - pos[i0, 0], pos[i1, 1] - pos[i0, 1], pos[i1, 2] - pos[i0, 2]
+            bx, by, bz = pos[i2, 0] - pos[i0, 0], pos[i2, 1] - pos[i0, 1], pos[i2, 2] - pos[i0, 2]
+            wx, wy, wz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+            cx = w2c[0, 0] * wx + w2c[0, 1] * wy + w2c[0, 2] * wz
+            cy = w2c[1, 0] * wx + w2c[1, 1] * wy + w2c[1, 2] * wz
+            cz = w2c[2, 0] * wx + w2c[2, 1] * wy + w2c[2, 2] * wz
+            X0 = w2c[0, 0] * pos[i0, 0] + w2c[0, 1] * pos[i0, 1] + w2c[0, 2] * pos[i0, 2] + w2c[0, 3]
+            Y0 = w2c[1, 0] * pos[i0, 0] + w2c[1, 1] * pos[i0, 1] + w2c[1, 2] * pos[i0, 2] + w2c[1, 3]
+            Z0 = w2c[2, 0] * pos[i0, 0] + w2c[2, 1] * pos[i0, 1] + w2c[2, 2] * pos[i0, 2] + w2c[2, 3]
+            ln = math.sqrt(cx * cx + cy * cy + cz * cz)
+            if cx * X0 + cy * Y0 + cz * Z0 > 0:
+                ln = -ln
+            if ln != 0.0:
+                normal[iy, ix, 0], normal[iy, ix, 1], normal[iy, ix, 2] = cx / ln, cy / ln, cz / ln
+            else:
+                normal[iy, ix, 0], normal[iy, ix, 1], normal[iy, ix, 2] = 0.0, 0.0, 0.0
 
 
 def rasterize_hard(positions, faces, colors, world_to_camera, K, width, height, background=None, near: float = 0.01,
@@ -164,14 +248,15 @@ def rasterize_hard(positions, faces, colors, world_to_camera, K, width, height, 
     (view depth, 0 where empty), normal (camera-facing unit face normal, camera frame), face_id (-1 where empty),
     max_weight (1 for faces that win at least one pixel), pairs_evaluated (pixel/face depth tests).
     """
-    ones = np.ones(np.asarray(positions.detach() if isinstance(positions, torch.Tensor) else positions).shape[0])
-    vi = validate(positions, faces, colors, ones, 1.0, world_to_camera, K, width, height, background)
+    n = positions.shape[0] if hasattr(positions, "shape") and len(positions.shape) == 2 else 0
+    vi = validate(positions, faces, colors, np.ones(n, np.float32), 1.0, world_to_camera, K, width, height,
+                  background)
     if not near > 0:
         raise ValueError(f"near must be > 0, got {near}")
     outs = []
     with torch.no_grad():
         pos = vi.positions.detach().to(torch.float32).cpu().numpy()
-        fc = np.ascontiguousarray(vi.faces.cpu().numpy().astype(np.int32))
+        fc = np.ascontiguousarray(vi.faces.cpu().numpy(), dtype=np.int32)
         F = fc.shape[0]
         for b in range(vi.world_to_camera.shape[0]):
             w2c, Kb = vi.world_to_camera[b], vi.K[b]
@@ -180,21 +265,23 @@ def rasterize_hard(positions, faces, colors, world_to_camera, K, width, height, 
                 R, t = w2c[:3, :3], w2c[:3, 3]
                 col = eval_sh(col, vi.positions - (-(R.T @ t)))
             col = np.ascontiguousarray(col.detach().to(torch.float32).cpu().numpy())
-            rec = np.zeros((F, H_N), np.float32)
-            rows = np.zeros((F, 2), np.int32)
-            hard_setup(pos, fc, w2c.cpu().numpy().astype(np.float64), Kb.cpu().numpy().astype(np.float64),
-                       float(near), vi.width, vi.height, rec, rows)
             W, H = vi.width, vi.height
+            w2c_np = w2c.cpu().numpy().astype(np.float64)
+            uvz = np.empty((F, 9), np.float32)
+            box = np.empty((F, 4), np.int32)
+            znear = np.empty(F, np.float32)
+            hard_setup(pos, fc, w2c_np, Kb.cpu().numpy().astype(np.float64), float(near), W, H, uvz, box, znear)
+            order = depth_order(box, znear, DEPTH_SLABS)
             zbuf = np.zeros(W * H, np.float32)
-            fid = np.full(W * H, -1, np.int64)
+            fid = np.full(W * H, -1, np.int32)
             nb = max(1, min(H, numba.get_num_threads() * BANDS_PER_THREAD))
-            evals = hard_zbuffer(rec, rows, W, H, nb, zbuf, fid)
+            evals = hard_zbuffer(uvz, box, znear, order, W, H, nb, zbuf, fid)
             rgb = np.empty((H, W, 3), np.float32)
             depth = np.empty((H, W), np.float32)
             normal = np.empty((H, W, 3), np.float32)
             bg = vi.background.to(torch.float32).cpu().numpy()
-            hard_resolve(rec, fc, col, fid, W, H, bool(perspective_correct), bg, rgb, depth, normal)
-            face_id = torch.from_numpy(fid.reshape(H, W))
+            hard_resolve(uvz, pos, fc, w2c_np, col, fid, W, H, bool(perspective_correct), bg, rgb, depth, normal)
+            face_id = torch.from_numpy(fid.reshape(H, W)).long()
             won = torch.zeros(F, dtype=vi.positions.dtype)
             if F:
                 won[face_id[face_id >= 0]] = 1.0
@@ -202,7 +289,7 @@ def rasterize_hard(positions, faces, colors, world_to_camera, K, width, height, 
             outs.append(RenderOutput(rgb=torch.from_numpy(rgb).to(dt), alpha=(face_id >= 0).to(dt),
                                      depth=torch.from_numpy(depth).to(dt), normal=torch.from_numpy(normal).to(dt),
                                      max_weight=won, face_id=face_id, pairs_evaluated=int(evals),
-                                     faces_visible=int((rows[:, 0] <= rows[:, 1]).sum())))
+                                     faces_visible=int(order.shape[0])))
     if not vi.batched:
         return outs[0]
     return RenderOutput(rgb=torch.stack([o.rgb for o in outs]), alpha=torch.stack([o.alpha for o in outs]),

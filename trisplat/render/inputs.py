@@ -14,9 +14,30 @@ BACKENDS = ("numba", "reference")
 OPACITY_MODES = ("min", "mean")
 
 
+def scan(t: torch.Tensor, bounds: bool = True) -> tuple[int, float, float]:
+    """Non-finite count, min and max of a tensor's values (vectorised numpy reductions, no big temporaries).
+
+    Finiteness is read off a float64 sum (a sum of finite float32 values cannot overflow it; for float64 input an
+    overflowing sum is re-checked), so the all-finite case costs one pass; the count is made only on failure."""
+    a = t.detach().cpu().reshape(-1).numpy()
+    if a.size == 0:
+        return 0, 0.0, 0.0
+    bad = 0
+    if a.dtype.kind == "f":
+        total = np.add.reduce(a, dtype=np.float64)
+        if not np.isfinite(total) and not (a.dtype == np.float64 and np.isfinite(a).all()):
+            bad = int(a.size - np.count_nonzero(np.isfinite(a)))
+    if not bounds:
+        return bad, 0.0, 0.0
+    if bad:
+        f = a[np.isfinite(a)]
+        return bad, float(f.min()) if f.size else 0.0, float(f.max()) if f.size else 0.0
+    return 0, float(a.min()), float(a.max())
+
+
 @dataclass
 class ViewInputs:
-    """Validated tensors for one call: positions [V,3] float, faces int64 [F,3], colors [V,3] or [V,K,3],
+    """Validated tensors for one call: positions [V,3] float, faces int32 or int64 [F,3], colors [V,3] or [V,K,3],
     opacities [V], world_to_camera [B,4,4], K [B,3,3] (same dtype as positions), background [3]; batched tells
     whether the caller passed a leading B axis."""
 
@@ -105,31 +126,33 @@ def validate(positions, faces, colors, opacities, sigma, world_to_camera, K, wid
         raise ValueError(f"positions must be a float tensor, got dtype {pos.dtype}")
     if pos.ndim != 2 or pos.shape[1] != 3:
         raise ValueError(f"positions must be [V,3], got {tuple(pos.shape)}")
-    if not torch.isfinite(pos.detach()).all():
-        bad = int((~torch.isfinite(pos.detach()).all(1)).sum())
-        raise ValueError(f"positions hold NaN or Inf ({bad} of {pos.shape[0]} vertices)")
+    bad = scan(pos, bounds=False)[0]
+    if bad:
+        raise ValueError(f"positions hold {bad} NaN or Inf values ({pos.shape[0]} vertices)")
     V, dev, dtype = pos.shape[0], pos.device, pos.dtype
     fc = _as_tensor(faces, "faces", dev)
     if fc.dtype.is_floating_point or fc.dtype == torch.bool or fc.is_complex():
         raise ValueError(f"faces must be an integer tensor (int32 [F,3]), got dtype {fc.dtype}")
     if fc.ndim != 2 or fc.shape[1] != 3:
         raise ValueError(f"faces must be [F,3], got {tuple(fc.shape)}")
-    fc = fc.long()
-    if fc.numel() and (int(fc.min()) < 0 or int(fc.max()) >= V):
-        raise ValueError(f"face indices must lie in [0, {V - 1}] (V={V}), got range [{int(fc.min())}, {int(fc.max())}]")
+    if fc.dtype not in (torch.int32, torch.int64):
+        fc = fc.long()
+    _, lo, hi = scan(fc)
+    if fc.numel() and (lo < 0 or hi >= V):
+        raise ValueError(f"face indices must lie in [0, {V - 1}] (V={V}), got range [{int(lo)}, {int(hi)}]")
     col = _as_tensor(colors, "colors", dev)
     if not col.is_floating_point():
         raise ValueError(f"colors must be a float tensor, got dtype {col.dtype}")
     if not ((col.ndim == 2 and col.shape == (V, 3)) or (col.ndim == 3 and col.shape[0] == V and col.shape[2] == 3
                                                         and col.shape[1] in (1, 4, 9, 16))):
         raise ValueError(f"colors must be [V,3] RGB or [V,(d+1)^2,3] SH with V={V}, got {tuple(col.shape)}")
-    if not torch.isfinite(col.detach()).all():
+    if scan(col, bounds=False)[0]:
         raise ValueError("colors hold NaN or Inf")
     op = _as_tensor(opacities, "opacities", dev)
     if not op.is_floating_point() or op.shape != (V,):
         raise ValueError(f"opacities must be a float [V] tensor with V={V}, got {tuple(op.shape)} {op.dtype}")
-    opd = op.detach()
-    if not torch.isfinite(opd).all() or opd.numel() and (float(opd.min()) < 0 or float(opd.max()) > 1):
+    bad, lo, hi = scan(op)
+    if bad or op.numel() and (lo < 0 or hi > 1):
         raise ValueError("opacities must lie in [0, 1] (already through the sigmoid)")
     if isinstance(sigma, torch.Tensor):
         sigma = float(sigma.detach())

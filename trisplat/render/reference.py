@@ -108,6 +108,7 @@ def render_reference(positions, faces, vertex_rgb, opacities, sigma: float, worl
     world_to_camera [4,4] and K [3,3] are tensors of the positions' dtype. Images are [H,W,...].
     """
     dtype, dev = positions.dtype, positions.device
+    faces = faces.long()
     F = faces.shape[0]
     tri_cam, uv, keep, nrm, n, d, phi_s, area2 = project_faces(positions, faces, world_to_camera, K, opts)
     o_v = opacities[faces]  # [F,3]

@@ -37,7 +37,7 @@ def forward_numba(positions, faces, vertex_rgb, opacities, sigma, world_to_camer
                   opts: RenderOptions):
     """Run setup, binning and the forward tile kernel. Returns (images tuple, max_weight, face_id, counters, bins)."""
     pos = _np32(positions)
-    fc = np.ascontiguousarray(faces.detach().cpu().numpy().astype(np.int32))
+    fc = np.ascontiguousarray(faces.detach().cpu().numpy(), dtype=np.int32)
     w2c = np.ascontiguousarray(world_to_camera.detach().cpu().numpy().astype(np.float64))
     Kn = np.ascontiguousarray(K.detach().cpu().numpy().astype(np.float64))
     rgb_v, op_v, bg = _np32(vertex_rgb), _np32(opacities), _np32(background)
