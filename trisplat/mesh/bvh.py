@@ -15,6 +15,7 @@ import numba as nb
 import numpy as np
 
 LEAF_SIZE = 4  # triangles per BVH leaf
+_CHUNK = 1024  # segments per parallel task
 _STACK_DEPTH = 128  # traversal stack entries; a median-split tree over 2^60 triangles would still fit
 # A triangle counts as parallel to a segment when |det| <= PARALLEL_EPS * |d| * |e1| * |e2| (dimensionless: the
 # sine of the angle between the segment and the triangle's plane, times the sine of the triangle's corner angle).
@@ -164,65 +165,69 @@ def _segment_triangle(p0, d, tri, t_id):
     return 0.0 <= s <= 1.0
 
 
+@nb.njit(cache=True, inline="always")
+def _first_hit(p0, d, inv, stack, ea, eb, tri, tri_ids, order, nmin, nmax, left, right, start, count):
+    """Depth-first any-hit traversal for one segment p0 + s*d (s in [0,1]); inv = 1/d (inf where d is 0)."""
+    sp = 0
+    stack[sp] = 0
+    sp += 1
+    while sp > 0:
+        sp -= 1
+        node = stack[sp]
+        # slab test of the segment against the node box
+        t0 = 0.0
+        t1 = 1.0
+        miss = False
+        for k in range(3):
+            if d[k] == 0.0:
+                if p0[k] < nmin[node, k] or p0[k] > nmax[node, k]:
+                    miss = True
+                    break
+            else:
+                ta = (nmin[node, k] - p0[k]) * inv[k]
+                tb = (nmax[node, k] - p0[k]) * inv[k]
+                if ta > tb:
+                    ta, tb = tb, ta
+                t0 = max(t0, ta)
+                t1 = min(t1, tb)
+                if t0 > t1:
+                    miss = True
+                    break
+        if miss:
+            continue
+        if left[node] < 0:
+            for j in range(start[node], start[node] + count[node]):
+                t_id = order[j]
+                if ea >= 0 and (tri_ids[t_id, 0] == ea or tri_ids[t_id, 1] == ea or tri_ids[t_id, 2] == ea):
+                    continue
+                if eb >= 0 and (tri_ids[t_id, 0] == eb or tri_ids[t_id, 1] == eb or tri_ids[t_id, 2] == eb):
+                    continue
+                if _segment_triangle(p0, d, tri, t_id):
+                    return t_id
+        else:
+            stack[sp] = left[node]
+            sp += 1
+            stack[sp] = right[node]
+            sp += 1
+    return -1
+
+
 @nb.njit(parallel=True, cache=True)
 def _any_hit_kernel(p0s, p1s, excl_a, excl_b, tri, tri_ids, order, nmin, nmax, left, right, start, count):
     n = p0s.shape[0]
     out = np.full(n, -1, np.int64)
-    for i in nb.prange(n):
-        p0 = p0s[i]
-        d = p1s[i] - p0
+    n_chunks = (n + _CHUNK - 1) // _CHUNK
+    for chunk in nb.prange(n_chunks):  # scratch arrays allocated once per chunk of segments, not per segment
+        d = np.empty(3)
         inv = np.empty(3)
-        for k in range(3):
-            inv[k] = 1.0 / d[k] if d[k] != 0.0 else np.inf
-        ea = excl_a[i]
-        eb = excl_b[i]
         stack = np.empty(_STACK_DEPTH, np.int64)
-        sp = 0
-        stack[sp] = 0
-        sp += 1
-        while sp > 0:
-            sp -= 1
-            node = stack[sp]
-            # slab test of the segment (s in [0,1]) against the node box
-            t0 = 0.0
-            t1 = 1.0
-            miss = False
+        for i in range(chunk * _CHUNK, min(n, (chunk + 1) * _CHUNK)):
+            p0 = p0s[i]
             for k in range(3):
-                if d[k] == 0.0:
-                    if p0[k] < nmin[node, k] or p0[k] > nmax[node, k]:
-                        miss = True
-                        break
-                else:
-                    ta = (nmin[node, k] - p0[k]) * inv[k]
-                    tb = (nmax[node, k] - p0[k]) * inv[k]
-                    if ta > tb:
-                        ta, tb = tb, ta
-                    t0 = max(t0, ta)
-                    t1 = min(t1, tb)
-                    if t0 > t1:
-                        miss = True
-                        break
-            if miss:
-                continue
-            if left[node] < 0:
-                found = -1
-                for j in range(start[node], start[node] + count[node]):
-                    t_id = order[j]
-                    if ea >= 0 and (tri_ids[t_id, 0] == ea or tri_ids[t_id, 1] == ea or tri_ids[t_id, 2] == ea):
-                        continue
-                    if eb >= 0 and (tri_ids[t_id, 0] == eb or tri_ids[t_id, 1] == eb or tri_ids[t_id, 2] == eb):
-                        continue
-                    if _segment_triangle(p0, d, tri, t_id):
-                        found = t_id
-                        break
-                if found >= 0:
-                    out[i] = found
-                    break
-            else:
-                stack[sp] = left[node]
-                sp += 1
-                stack[sp] = right[node]
-                sp += 1
+                d[k] = p1s[i, k] - p0[k]
+                inv[k] = 1.0 / d[k] if d[k] != 0.0 else np.inf
+            out[i] = _first_hit(p0, d, inv, stack, excl_a[i], excl_b[i], tri, tri_ids, order, nmin, nmax, left,
+                                right, start, count)
     return out
 
 
