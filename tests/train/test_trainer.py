@@ -117,3 +117,17 @@ def test_meshsplatting_switch_replaces_soup_by_connected_mesh(tiny_scene, tmp_pa
     assert faces.max() < len(pos) and faces.min() >= 0
     m = json.loads((tmp_path / "ms" / layout.METRICS).read_text())
     assert m["final_prune"] is None and m["faces"] == len(faces)
+
+
+def test_minutes_plan_prices_supersampled_steps(tiny_scene, tmp_path):
+    tr = _trainer(tiny_scene, tmp_path / "m", minutes=1.0, supersample_2x_from=1.01)
+    tr._plan_minutes(0.1, 0.0)
+    assert tr.clock.total == 540  # 90% of 60 s at 0.1 s a step
+    tr = _trainer(tiny_scene, tmp_path / "m2", minutes=1.0, supersample_2x_from=0.5)
+    tr._plan_minutes(0.1, 0.0)
+    assert tr.clock.total == 216  # half the steps at 2x cost 4x: 54 s / (0.1 s * 2.5)
+    # re-planning later keeps progress continuous
+    tr.step = 100
+    p = tr.clock.p(100)
+    tr._plan_minutes(0.1, 30.0)
+    assert tr.clock.p(100) == pytest.approx(p) and tr.clock.total > 100

@@ -26,6 +26,7 @@ from trisplat.train.checkpoint import atomic_torch_save, checkpoint_state, load_
 from trisplat.train.config import TrainConfig
 
 MAX_ROLLBACKS = 3
+MINUTES_WARMUP_STEPS = 10  # steps timed before a --minutes run sets its step count
 
 
 class TrainingDiverged(RuntimeError):
@@ -243,10 +244,17 @@ class Trainer:
 
     # ------------------------------------------------------------------------------------------------------- run
     def _plan_minutes(self, measured_s_per_step: float, elapsed_s: float) -> None:
-        """Fit the remaining schedule into the time budget from the measured step rate (later steps are dearer:
-        more faces, supersampling; the margin covers it and re-planning corrects it)."""
+        """Fit the remaining schedule into the time budget from the measured step rate. Supersampled steps cost
+        about ss^2 times more (pixels), so the rest of the schedule is priced with the share of it at each factor;
+        a 10% margin covers growth in face count, and later re-plans correct what is left."""
         budget = self.cfg.minutes * 60.0 - elapsed_s
-        remaining = max(int(budget * 0.85 / max(measured_s_per_step, 1e-4)), 1)
+        p0 = self.clock.p(self.step)
+        ss_now = schedules.supersample(p0, self.cfg)
+        bounds = sorted({p0, 1.0, *[b for b in (self.cfg.supersample_2x_from, self.cfg.supersample_4x_from)
+                                     if p0 < b < 1.0]})
+        rel_cost = sum((b - a) * (schedules.supersample(a, self.cfg) / ss_now) ** 2
+                       for a, b in zip(bounds, bounds[1:])) / max(1.0 - p0, 1e-9)
+        remaining = max(int(0.9 * budget / max(measured_s_per_step * rel_cost, 1e-4)), 1)
         self.clock.replan(self.step, self.step + remaining)
 
     def warm_up_kernels(self) -> float:
@@ -265,7 +273,9 @@ class Trainer:
         if self.show_progress:
             print("preparing the renderer (compiles once, then cached) ...", file=sys.stderr, flush=True)
         self.warm_up_kernels()
-        replan_at = [0.02, 0.2, 0.5, 0.8] if cfg.minutes else []
+        # --minutes: plan the step count after a short warm-up, then re-plan at a few points as the scene grows
+        replan_at = [p for p in (0.2, 0.5, 0.8) if p > self.clock.p(self.step)] if cfg.minutes else []
+        planned = not cfg.minutes or self.step >= MINUTES_WARMUP_STEPS
         window: list[float] = []
         bar = tqdm(total=self.clock.total, initial=self.step, disable=not self.show_progress, unit="step",
                    dynamic_ncols=True, desc="train")
@@ -287,7 +297,11 @@ class Trainer:
             dt = time.perf_counter() - t0
             self.wall_s += dt
             window = (window + [dt])[-50:]
-            if cfg.minutes and replan_at and self.clock.p(self.step) >= replan_at[0] and len(window) >= 5:
+            if not planned and len(window) >= MINUTES_WARMUP_STEPS:
+                planned = True
+                self._plan_minutes(float(np.median(window)), self.wall_s)
+                bar.total = self.clock.total
+            elif planned and replan_at and self.clock.p(self.step) >= replan_at[0]:
                 replan_at.pop(0)
                 self._plan_minutes(float(np.median(window)), self.wall_s)
                 bar.total = self.clock.total
@@ -299,7 +313,8 @@ class Trainer:
                 bar.set_postfix(loss=f"{info['loss']:.4f}", psnr=f"{info['psnr']:.2f}", faces=self.ts.num_faces,
                                 sigma=f"{rec['sigma']:.3g}")
             if self.clock.p(self.step) >= next_eval and self.step < self.clock.total:
-                next_eval += cfg.eval_every
+                # re-planning (--minutes) can move progress past several evaluation points at once
+                next_eval = (math.floor(self.clock.p(self.step) / cfg.eval_every) + 1) * cfg.eval_every
                 test_psnr = self.evaluate(self.clock.p(self.step), cfg.eval_max_views)
                 self._log({"step": self.step, "wall_s": round(self.wall_s, 3), "test_psnr": test_psnr,
                            "faces": self.ts.num_faces})
