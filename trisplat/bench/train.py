@@ -45,7 +45,7 @@ def _psnr_at_fractions(history: list[dict], fractions=(0.25, 0.5, 0.75)) -> list
 
 def main(argv: list[str]) -> int:
     args = tyro.cli(TrainBenchArgs, args=argv, description=TrainBenchArgs.__doc__, prog=PROG)
-    from trisplat.commands.train import TrainArgs, run_training
+    from trisplat.commands.train import make_train_args, run_training
     from trisplat.run import open_run
 
     table = BenchTable(
@@ -60,8 +60,8 @@ def main(argv: list[str]) -> int:
         if not data.exists():
             raise FileNotFoundError(f"{data}: benchmark data missing (pass --data-root)")
         run_dir = args.runs / f"{name}_{args.preset}_{args.minutes:g}min"
-        result = run_training(TrainArgs(data=data, out=run_dir, preset=args.preset, minutes=args.minutes,
-                                        downscale=opts["downscale"], force=True))
+        result = run_training(make_train_args(data, run_dir, args.preset, force=True, minutes=args.minutes,
+                                              downscale=opts["downscale"]))
         m = result.metrics
         hist = open_run(run_dir).history()
         table.add(name, args.preset, args.minutes, result.wall_s / 60, result.steps, m["faces"], m["vertices"],

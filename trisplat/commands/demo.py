@@ -78,7 +78,7 @@ LPIPS {fmt(metrics.get('lpips'), 3)} (soft render PSNR {fmt(metrics.get('soft_ps
 
 def main(argv: list[str]) -> int:
     args = tyro.cli(DemoArgs, args=argv, description=DemoArgs.__doc__, prog=PROG)
-    from trisplat.commands.train import TrainArgs, run_training
+    from trisplat.commands.train import make_train_args, run_training
 
     out = args.out
     run_dir = out / "run"
@@ -92,8 +92,8 @@ def main(argv: list[str]) -> int:
         resume = state is not None and (run_dir / layout.CHECKPOINT).exists()
         if resume and not args.quiet:
             print(f"resuming the interrupted demo run in {run_dir}", file=sys.stderr)
-        run_training(TrainArgs(data=scene_dir, out=run_dir, preset="fast", minutes=args.minutes, steps=args.steps,
-                               resume=resume, force=state is not None and not resume, quiet=args.quiet))
+        run_training(make_train_args(scene_dir, run_dir, "fast", resume=resume, force=state is not None and not resume,
+                                     quiet=args.quiet, minutes=args.minutes, steps=args.steps))
     page = write_page(out, run_dir)
     m = json.loads((run_dir / layout.METRICS).read_text())
     print(f"demo done: test PSNR {m['psnr']:.2f} dB with {m['faces']} opaque faces. Open {page.resolve()}")

@@ -1,13 +1,12 @@
 """`trisplat train DATA --out RUN`: optimise triangles on a capture, with checkpoints, resume and exports."""
 from __future__ import annotations
 
-import dataclasses
 import shutil
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import tyro
 
@@ -19,34 +18,38 @@ PROG = "trisplat train"
 
 @dataclass
 class TrainArgs:
-    """Train a scene: photos (or a generated scene) -> an opaque triangle mesh in OUT."""
+    """Train a scene: photos (or a generated scene) -> an opaque triangle mesh in OUT. Every field of the preset's
+    configuration can be overridden (--steps, --minutes, --max-vertices, --sh-degree, --downscale, ...)."""
 
     data: tyro.conf.Positional[Path]
     """Capture folder (COLMAP, Blender/NeRF, instant-ngp transforms.json or RGB-D)."""
     out: Path
-    """Run directory (created; an existing finished run is never overwritten without --force)."""
+    """Run directory (created; an existing run is never overwritten without --force)."""
     preset: Literal[tuple(PRESETS)] = "default"  # type: ignore[valid-type]
-    """fast (a few minutes on a laptop CPU), default, full (the paper's 30k steps), meshsplatting."""
-    minutes: float | None = None
-    """Fit the whole schedule into this many minutes of wall time."""
-    steps: int | None = None
-    """Override the preset's step count."""
-    downscale: int | None = None
-    """Image downscale factor (1, 2, 4, 8)."""
-    max_vertices: int | None = None
-    """Densification cap on the vertex count."""
-    sh_degree: int | None = None
-    """Maximum SH degree (0-3)."""
-    init: Literal["auto", "delaunay", "soup", "random"] | None = None
-    """Initial triangles."""
-    seed: int | None = None
-    final_max_weight_pass: bool | None = None
-    """Drop faces with max blending weight <= 0.5 over the training views at the end."""
+    """fast (a few minutes on a laptop CPU), default, full (the paper's 30k steps), meshsplatting. Its values are
+    the defaults shown below."""
     resume: bool = False
-    """Continue a run from its last checkpoint."""
+    """Continue a run from its last checkpoint (its saved configuration is used)."""
     force: bool = False
     """Start over in a directory that holds a run (the old run is moved aside, never deleted)."""
     quiet: bool = False
+    config: Annotated[TrainConfig, tyro.conf.arg(name="")] = field(default_factory=TrainConfig)
+
+
+def make_train_args(data, out, preset: str = "default", resume: bool = False, force: bool = False,
+                    quiet: bool = False, **overrides) -> TrainArgs:
+    """TrainArgs for a preset with some configuration fields overridden (None values are ignored)."""
+    return TrainArgs(data=Path(data), out=Path(out), preset=preset, resume=resume, force=force, quiet=quiet,
+                     config=make_config(preset, **overrides))
+
+
+def _preset_in(argv: list[str]) -> str:
+    for i, a in enumerate(argv):
+        if a == "--preset" and i + 1 < len(argv):
+            return argv[i + 1]
+        if a.startswith("--preset="):
+            return a.split("=", 1)[1]
+    return "default"
 
 
 def prepare_run_dir(out: Path, resume: bool, force: bool) -> None:
@@ -78,9 +81,7 @@ def run_training(args: TrainArgs):
         data_options = run.config.get("data_options", {})
         data_path = run.config["data"]
     else:
-        overrides = {f.name: getattr(args, f.name) for f in dataclasses.fields(args)
-                     if f.name in {g.name for g in dataclasses.fields(TrainConfig)}}
-        cfg = make_config(args.preset, **overrides)
+        cfg = args.config
         data_options = {"downscale": cfg.downscale, "background": list(cfg.background), "test_every": cfg.test_every}
         data_path = str(args.data.resolve())
     data = load_dataset(data_path, **data_options)
@@ -90,7 +91,11 @@ def run_training(args: TrainArgs):
 
 
 def main(argv: list[str]) -> int:
-    args = tyro.cli(TrainArgs, args=argv, description=TrainArgs.__doc__, prog=PROG)
+    preset = _preset_in(argv)
+    default = TrainArgs(data=tyro.MISSING, out=tyro.MISSING, preset=preset,  # type: ignore[arg-type]
+                        config=make_config(preset) if preset in PRESETS else TrainConfig())
+    args = tyro.cli(TrainArgs, args=argv, default=default, description=TrainArgs.__doc__, prog=PROG,
+                    config=(tyro.conf.OmitArgPrefixes,))
     try:
         result = run_training(args)
     except FileExistsError as exc:

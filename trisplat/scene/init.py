@@ -163,8 +163,8 @@ def _random_rotations(n: int, rng: np.random.Generator) -> np.ndarray:
     )
 
 
-def soup_sizes(pts: np.ndarray) -> np.ndarray:
-    """Per-point triangle circumradius: SOUP_SIZE_FACTOR x RMS distance to the SOUP_NEIGHBOURS nearest others."""
+def soup_sizes(pts: np.ndarray, factor: float = SOUP_SIZE_FACTOR) -> np.ndarray:
+    """Per-point triangle circumradius: `factor` x RMS distance to the SOUP_NEIGHBOURS nearest others."""
     from scipy.spatial import cKDTree
 
     n = len(pts)
@@ -175,7 +175,7 @@ def soup_sizes(pts: np.ndarray) -> np.ndarray:
     k = min(SOUP_NEIGHBOURS, n - 1)
     d, _ = cKDTree(pts).query(pts, k=k + 1)
     rms = np.sqrt(np.mean(d[:, 1:] ** 2, axis=1))
-    return np.maximum(SOUP_SIZE_FACTOR * rms, floor)
+    return np.maximum(factor * rms, floor)
 
 
 def init_soup(
@@ -186,9 +186,10 @@ def init_soup(
     opacity: float = TSPLUS_OPACITY,
     sh_degree: int = 3,
     max_points: int | None = None,
+    size_factor: float = SOUP_SIZE_FACTOR,
 ) -> tuple[TriangleScene, InitReport]:
     """MeshSplatting / TS v1 soup: one randomly oriented equilateral triangle per point (3 private vertices),
-    centred on the point, circumradius SOUP_SIZE_FACTOR x the RMS distance to its 3 nearest neighbours."""
+    centred on the point, circumradius size_factor (2.23) x the RMS distance to its 3 nearest neighbours."""
     rng = rng if rng is not None else np.random.default_rng(seed)
     report = InitReport("soup", input_points=int(np.asarray(points).reshape(-1, 3).shape[0]), vertices=0, faces=0)
     pts, cols = _clean(points, colors, report, max_points, rng)
@@ -198,7 +199,7 @@ def init_soup(
     ang = np.array([0.0, 2 * np.pi / 3, 4 * np.pi / 3])
     template = np.stack([np.cos(ang), np.sin(ang), np.zeros(3)], axis=1)  # unit circumradius, plane z = 0
     R = _random_rotations(n, rng)
-    verts = pts[:, None, :] + soup_sizes(pts)[:, None, None] * np.einsum("nij,kj->nki", R, template)
+    verts = pts[:, None, :] + soup_sizes(pts, size_factor)[:, None, None] * np.einsum("nij,kj->nki", R, template)
     faces = np.arange(3 * n, dtype=np.int32).reshape(n, 3)
     scene = TriangleScene.from_rgb(
         verts.reshape(-1, 3).astype(np.float32), faces, np.repeat(cols, 3, axis=0).astype(np.float32), opacity, sh_degree
@@ -214,9 +215,10 @@ def init_random(
     seed: int = 0,
     opacity: float = TSPLUS_OPACITY,
     sh_degree: int = 3,
+    size_factor: float = SOUP_SIZE_FACTOR,
 ) -> tuple[TriangleScene, InitReport]:
     """Synthetic scenes without points: n uniform random points in the box, random colours, each turned into a
-    small random triangle (init_soup)."""
+    small random triangle (init_soup, circumradius size_factor x the RMS distance to 3 neighbours)."""
     lo = np.asarray(bounds_min, dtype=np.float64).reshape(3)
     hi = np.asarray(bounds_max, dtype=np.float64).reshape(3)
     if not (np.isfinite(lo).all() and np.isfinite(hi).all() and (hi > lo).all()):
@@ -226,7 +228,7 @@ def init_random(
     rng = np.random.default_rng(seed)
     pts = lo + rng.random((int(n), 3)) * (hi - lo)
     cols = rng.random((int(n), 3))
-    scene, report = init_soup(pts, cols, rng=rng, opacity=opacity, sh_degree=sh_degree)
+    scene, report = init_soup(pts, cols, rng=rng, opacity=opacity, sh_degree=sh_degree, size_factor=size_factor)
     report.method = "random"
     report.notes.append(f"uniform in [{', '.join(f'{v:.3g}' for v in lo)}] .. [{', '.join(f'{v:.3g}' for v in hi)}]")
     return scene, report
@@ -240,6 +242,7 @@ def initial_scene(
     opacity: float = TSPLUS_OPACITY,
     max_points: int | None = None,
     random_points: int = DEFAULT_RANDOM_POINTS,
+    random_size_factor: float = SOUP_SIZE_FACTOR,
 ) -> tuple[TriangleScene, InitReport]:
     """Initial triangles for a SceneData: 'auto' = Delaunay of its points, or random points in `data.bounds`
     when it has none; or force 'delaunay' | 'soup' | 'random'."""
@@ -259,4 +262,4 @@ def initial_scene(
     if bounds is None:
         c = np.stack([cam.center for cam in data.cameras])
         bounds = np.stack([c.min(0), c.max(0)])
-    return init_random(bounds[0], bounds[1], random_points, seed, opacity, sh_degree)
+    return init_random(bounds[0], bounds[1], random_points, seed, opacity, sh_degree, random_size_factor)

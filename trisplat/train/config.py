@@ -30,6 +30,8 @@ class TrainConfig:
     """Subsample the sparse points to at most this many before initialisation."""
     init_random_points: int = 10_000
     """Triangles for random initialisation (scenes without sparse points)."""
+    init_random_size: float = 2.23
+    """Random initialisation: triangle circumradius / RMS distance to the 3 nearest random points."""
     init_opacity: float = 0.28
     sh_degree: int = 3
     """Maximum SH degree (0-3); the active degree rises by one every 1k paper-iterations."""
