@@ -26,6 +26,7 @@ T_ZI = 22  # 3
 T_NRM = 25  # 3
 T_OP = 28
 N_THETA = 29
+SETUP_CHUNKS = 256  # parallel chunks of the per-face setup loops
 SPAN_EPS_PX = 1e-3  # per-row spans are widened by this much; the exact inside test runs on every pixel anyway
 
 
@@ -59,88 +60,89 @@ def setup_faces(pos, faces, w2c, K, rgb, opac, opacity_min, near, far, min_area,
     """Per face: THETA, pixel-centre bounding box rect [F,4] (ix0, iy0, ix1, iy1), sort key (centroid view depth),
     opacity arg-min vertex, and the number of tiles the face overlaps exactly (0 = culled or off-screen)."""
     F = faces.shape[0]
-    for f in prange(F):
-        ntiles[f] = 0
+    for ch in prange(SETUP_CHUNKS):  # per-chunk scratch arrays: no allocation per face
         xc = np.empty((3, 3))
         uv = np.empty((3, 2))
-        for k in range(3):
-            v = faces[f, k]
-            for r in range(3):
-                xc[k, r] = w2c[r, 0] * pos[v, 0] + w2c[r, 1] * pos[v, 1] + w2c[r, 2] * pos[v, 2] + w2c[r, 3]
-        z0, z1, z2 = xc[0, 2], xc[1, 2], xc[2, 2]
-        if min(z0, min(z1, z2)) < near or min(z0, min(z1, z2)) > far:
-            continue
-        for k in range(3):
-            uv[k, 0] = (K[0, 0] * xc[k, 0] + K[0, 1] * xc[k, 1]) / xc[k, 2] + K[0, 2]
-            uv[k, 1] = (K[1, 0] * xc[k, 0] + K[1, 1] * xc[k, 1]) / xc[k, 2] + K[1, 2]
-        ax, ay, az = xc[1, 0] - xc[0, 0], xc[1, 1] - xc[0, 1], xc[1, 2] - xc[0, 2]
-        bx, by, bz = xc[2, 0] - xc[0, 0], xc[2, 1] - xc[0, 1], xc[2, 2] - xc[0, 2]
-        cx, cy, cz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
-        clen = math.sqrt(cx * cx + cy * cy + cz * cz)
-        if clen == 0.0:
-            continue
-        cx, cy, cz = cx / clen, cy / clen, cz / clen
-        if cx * xc[0, 0] + cy * xc[0, 1] + cz * xc[0, 2] > 0:
-            cx, cy, cz = -cx, -cy, -cz
-        mx = (xc[0, 0] + xc[1, 0] + xc[2, 0]) / 3.0
-        my = (xc[0, 1] + xc[1, 1] + xc[2, 1]) / 3.0
-        mz = (z0 + z1 + z2) / 3.0
-        if abs(cx * mx + cy * my + cz * mz) < grazing_cos * math.sqrt(mx * mx + my * my + mz * mz):
-            continue
-        area2 = (uv[1, 0] - uv[0, 0]) * (uv[2, 1] - uv[0, 1]) - (uv[1, 1] - uv[0, 1]) * (uv[2, 0] - uv[0, 0])
-        aa = abs(area2)
-        if aa * 0.5 < min_area or aa == 0.0:
-            continue
-        sg = 1.0 if area2 >= 0 else -1.0
-        per = 0.0
         lens = np.empty(3)
-        for k in range(3):
-            k1 = (k + 1) % 3
-            ex, ey = uv[k1, 0] - uv[k, 0], uv[k1, 1] - uv[k, 1]
-            ln = math.sqrt(ex * ex + ey * ey)
-            lens[k] = ln
-            per += ln
-            nx, ny = sg * ey / ln, -sg * ex / ln
-            theta[f, 3 * k] = nx
-            theta[f, 3 * k + 1] = ny
-            theta[f, 3 * k + 2] = -(nx * uv[k, 0] + ny * uv[k, 1])
-        theta[f, T_INVR] = per / aa
-        for k in range(3):
-            theta[f, T_S + k] = lens[(k + 1) % 3] / aa
-            v = faces[f, k]
-            for c in range(3):
-                theta[f, T_COL + 3 * k + c] = rgb[v, c]
-            theta[f, T_ZI + k] = 1.0 / xc[k, 2]
-        theta[f, T_NRM] = cx
-        theta[f, T_NRM + 1] = cy
-        theta[f, T_NRM + 2] = cz
-        o0, o1, o2 = opac[faces[f, 0]], opac[faces[f, 1]], opac[faces[f, 2]]
-        if opacity_min:
-            am = 0
-            om = o0
-            if o1 < om:
-                am, om = 1, o1
-            if o2 < om:
-                am, om = 2, o2
-            theta[f, T_OP] = om
-            argmin[f] = am
-        else:
-            theta[f, T_OP] = (o0 + o1 + o2) / 3.0
-            argmin[f] = -1
-        # Pixel-centre bounding box -> tile rectangle, then the exact overlap count.
-        umin = min(uv[0, 0], min(uv[1, 0], uv[2, 0]))
-        umax = max(uv[0, 0], max(uv[1, 0], uv[2, 0]))
-        vmin = min(uv[0, 1], min(uv[1, 1], uv[2, 1]))
-        vmax = max(uv[0, 1], max(uv[1, 1], uv[2, 1]))
-        ix0 = max(0, int(math.ceil(umin - 0.5)))
-        ix1 = min(width - 1, int(math.floor(umax - 0.5)))
-        iy0 = max(0, int(math.ceil(vmin - 0.5)))
-        iy1 = min(height - 1, int(math.floor(vmax - 0.5)))
-        if ix0 > ix1 or iy0 > iy1:
-            continue
-        rect[f, 0], rect[f, 1], rect[f, 2], rect[f, 3] = ix0, iy0, ix1, iy1
-        ntiles[f] = _count_tiles(theta[f], ix0, iy0, ix1, iy1, tile)
-        key[f] = mz  # centroid view depth; ties keep the face order (stable sort)
+        for f in range(ch * F // SETUP_CHUNKS, (ch + 1) * F // SETUP_CHUNKS):
+            ntiles[f] = 0
+            for k in range(3):
+                v = faces[f, k]
+                for r in range(3):
+                    xc[k, r] = w2c[r, 0] * pos[v, 0] + w2c[r, 1] * pos[v, 1] + w2c[r, 2] * pos[v, 2] + w2c[r, 3]
+            z0, z1, z2 = xc[0, 2], xc[1, 2], xc[2, 2]
+            if min(z0, min(z1, z2)) < near or min(z0, min(z1, z2)) > far:
+                continue
+            for k in range(3):
+                uv[k, 0] = (K[0, 0] * xc[k, 0] + K[0, 1] * xc[k, 1]) / xc[k, 2] + K[0, 2]
+                uv[k, 1] = (K[1, 0] * xc[k, 0] + K[1, 1] * xc[k, 1]) / xc[k, 2] + K[1, 2]
+            ax, ay, az = xc[1, 0] - xc[0, 0], xc[1, 1] - xc[0, 1], xc[1, 2] - xc[0, 2]
+            bx, by, bz = xc[2, 0] - xc[0, 0], xc[2, 1] - xc[0, 1], xc[2, 2] - xc[0, 2]
+            cx, cy, cz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+            clen = math.sqrt(cx * cx + cy * cy + cz * cz)
+            if clen == 0.0:
+                continue
+            cx, cy, cz = cx / clen, cy / clen, cz / clen
+            if cx * xc[0, 0] + cy * xc[0, 1] + cz * xc[0, 2] > 0:
+                cx, cy, cz = -cx, -cy, -cz
+            mx = (xc[0, 0] + xc[1, 0] + xc[2, 0]) / 3.0
+            my = (xc[0, 1] + xc[1, 1] + xc[2, 1]) / 3.0
+            mz = (z0 + z1 + z2) / 3.0
+            if abs(cx * mx + cy * my + cz * mz) < grazing_cos * math.sqrt(mx * mx + my * my + mz * mz):
+                continue
+            area2 = (uv[1, 0] - uv[0, 0]) * (uv[2, 1] - uv[0, 1]) - (uv[1, 1] - uv[0, 1]) * (uv[2, 0] - uv[0, 0])
+            aa = abs(area2)
+            if aa * 0.5 < min_area or aa == 0.0:
+                continue
+            sg = 1.0 if area2 >= 0 else -1.0
+            per = 0.0
+            for k in range(3):
+                k1 = (k + 1) % 3
+                ex, ey = uv[k1, 0] - uv[k, 0], uv[k1, 1] - uv[k, 1]
+                ln = math.sqrt(ex * ex + ey * ey)
+                lens[k] = ln
+                per += ln
+                nx, ny = sg * ey / ln, -sg * ex / ln
+                theta[f, 3 * k] = nx
+                theta[f, 3 * k + 1] = ny
+                theta[f, 3 * k + 2] = -(nx * uv[k, 0] + ny * uv[k, 1])
+            theta[f, T_INVR] = per / aa
+            for k in range(3):
+                theta[f, T_S + k] = lens[(k + 1) % 3] / aa
+                v = faces[f, k]
+                for c in range(3):
+                    theta[f, T_COL + 3 * k + c] = rgb[v, c]
+                theta[f, T_ZI + k] = 1.0 / xc[k, 2]
+            theta[f, T_NRM] = cx
+            theta[f, T_NRM + 1] = cy
+            theta[f, T_NRM + 2] = cz
+            o0, o1, o2 = opac[faces[f, 0]], opac[faces[f, 1]], opac[faces[f, 2]]
+            if opacity_min:
+                am = 0
+                om = o0
+                if o1 < om:
+                    am, om = 1, o1
+                if o2 < om:
+                    am, om = 2, o2
+                theta[f, T_OP] = om
+                argmin[f] = am
+            else:
+                theta[f, T_OP] = (o0 + o1 + o2) / 3.0
+                argmin[f] = -1
+            # Pixel-centre bounding box -> tile rectangle, then the exact overlap count.
+            umin = min(uv[0, 0], min(uv[1, 0], uv[2, 0]))
+            umax = max(uv[0, 0], max(uv[1, 0], uv[2, 0]))
+            vmin = min(uv[0, 1], min(uv[1, 1], uv[2, 1]))
+            vmax = max(uv[0, 1], max(uv[1, 1], uv[2, 1]))
+            ix0 = max(0, int(math.ceil(umin - 0.5)))
+            ix1 = min(width - 1, int(math.floor(umax - 0.5)))
+            iy0 = max(0, int(math.ceil(vmin - 0.5)))
+            iy1 = min(height - 1, int(math.floor(vmax - 0.5)))
+            if ix0 > ix1 or iy0 > iy1:
+                continue
+            rect[f, 0], rect[f, 1], rect[f, 2], rect[f, 3] = ix0, iy0, ix1, iy1
+            ntiles[f] = _count_tiles(theta[f], ix0, iy0, ix1, iy1, tile)
+            key[f] = mz  # centroid view depth; ties keep the face order (stable sort)
 
 
 @njit(parallel=True, cache=True)
@@ -148,7 +150,7 @@ def bin_faces(theta, rect, key, ntiles, width, height, tile):
     """Pairs (face-major order) and per-tile lists of pair indices sorted front to back.
 
     Returns face_start [F+1], pair_face [P], tile_start [NT+1], tile_pairs [P] (indices into the face-major
-    pair arrays)."""
+    pair arrays) and its inverse pos_of [P]."""
     F = ntiles.shape[0]
     ntx = (width + tile - 1) // tile
     nty = (height + tile - 1) // tile
@@ -183,6 +185,7 @@ def bin_faces(theta, rect, key, ntiles, width, height, tile):
         t = pair_tile[p]
         tile_pairs[fill[t]] = p
         fill[t] += 1
+    pos_of = np.empty(P, np.int64)  # face-major pair index -> position in the tile-ordered lists
     for t in prange(nt):
         a, b = tile_start[t], tile_start[t + 1]
         if b - a > 1:
@@ -193,7 +196,9 @@ def bin_faces(theta, rect, key, ntiles, width, height, tile):
             seg = tile_pairs[a:b].copy()
             for i in range(b - a):
                 tile_pairs[a + i] = seg[order[i]]
-    return face_start, pair_face, tile_start, tile_pairs
+        for i in range(a, b):
+            pos_of[tile_pairs[i]] = i
+    return face_start, pair_face, tile_start, tile_pairs, pos_of
 
 
 @njit(cache=True, inline="always")
@@ -206,6 +211,24 @@ def _span(nx, rnx, c, xlo, xhi):
     elif c >= SPAN_EPS_PX:
         xlo = xhi + 1
     return xlo, xhi
+
+
+@njit(cache=True)
+def _gather_tile(theta, rect, pair_face, tile_pairs, a, b):
+    """Copy the THETA rows, pixel boxes and face ids of one tile's pairs into contiguous local arrays (the
+    independent loads overlap; the tile loop then reads memory in order instead of chasing face indices)."""
+    n = b - a
+    loc = np.empty((n, N_THETA), np.float32)
+    lrect = np.empty((n, 4), np.int32)
+    lf = np.empty(n, np.int64)
+    for j in range(n):
+        f = pair_face[tile_pairs[a + j]]
+        lf[j] = f
+        for k in range(N_THETA):
+            loc[j, k] = theta[f, k]
+        for k in range(4):
+            lrect[j, k] = rect[f, k]
+    return loc, lrect, lf
 
 
 @njit(cache=True, inline="always")
@@ -234,18 +257,19 @@ def raster_forward(theta, rect, pair_face, tile_start, tile_pairs, width, height
         row_active = np.full(th_, tw, np.int64)  # pixels of each tile row still above transmittance_min
         active = npx
         evals = 0
-        for i in range(tile_start[t], tile_start[t + 1]):
+        ta = tile_start[t]
+        loc, lrect, lf = _gather_tile(theta, rect, pair_face, tile_pairs, ta, tile_start[t + 1])
+        for j in range(lf.shape[0]):
             if active == 0:
                 break
-            p = tile_pairs[i]
-            f = pair_face[p]
-            th = theta[f]
+            f = lf[j]
+            th = loc[j]
             inv_r, o = th[T_INVR], th[T_OP]
             maxw = np.float32(0.0)
             n0x, n0y, d0, n1x, n1y, d1, n2x, n2y, d2 = th[0], th[1], th[2], th[3], th[4], th[5], th[6], th[7], th[8]
             r0, r1, r2 = _recip(n0x), _recip(n1x), _recip(n2x)
-            xa, xb = max(x0, rect[f, 0]), min(x1 - 1, rect[f, 2])
-            for iy in range(max(y0, rect[f, 1]), min(y1 - 1, rect[f, 3]) + 1):
+            xa, xb = max(x0, lrect[j, 0]), min(x1 - 1, lrect[j, 2])
+            for iy in range(max(y0, lrect[j, 1]), min(y1 - 1, lrect[j, 3]) + 1):
                 if row_active[iy - y0] == 0:
                     continue
                 py = np.float32(iy) + half
@@ -298,7 +322,7 @@ def raster_forward(theta, rect, pair_face, tile_start, tile_pairs, width, height
                     if Tn < t_min:
                         active -= 1
                         row_active[iy - y0] -= 1
-            pair_weight[p] = maxw
+            pair_weight[ta + j] = maxw
         tile_evals[t] = evals
         for q in range(npx):
             iy, ix = y0 + q // tw, x0 + q % tw
@@ -311,14 +335,14 @@ def raster_forward(theta, rect, pair_face, tile_start, tile_pairs, width, height
 
 
 @njit(parallel=True, cache=True)
-def reduce_max_weight(pair_weight, face_start):
-    """Per-face maximum of the per-pair weights (pairs are in face-major order)."""
+def reduce_max_weight(pair_weight, face_start, pos_of):
+    """Per-face maximum of the per-pair weights (stored in tile order; pos_of maps face-major -> tile order)."""
     F = face_start.shape[0] - 1
     out = np.zeros(F, np.float32)
     for f in prange(F):
         m = np.float32(0.0)
         for p in range(face_start[f], face_start[f + 1]):
-            m = max(m, pair_weight[p])
+            m = max(m, pair_weight[pos_of[p]])
         out[f] = m
     return out
 
@@ -358,12 +382,12 @@ def raster_backward(theta, rect, pair_face, tile_start, tile_pairs, width, heigh
             total[q] = s
         active = npx
         row_active = np.full(th_, tw, np.int64)
-        for i in range(tile_start[t], tile_start[t + 1]):
+        ta = tile_start[t]
+        loc, lrect, lf = _gather_tile(theta, rect, pair_face, tile_pairs, ta, tile_start[t + 1])
+        for j in range(lf.shape[0]):
             if active == 0:
                 break
-            p = tile_pairs[i]
-            f = pair_face[p]
-            th = theta[f]
+            th = loc[j]
             inv_r, o = th[T_INVR], th[T_OP]
             s0, s1, s2 = th[T_S], th[T_S + 1], th[T_S + 2]
             z0, z1, z2 = th[T_ZI], th[T_ZI + 1], th[T_ZI + 2]
@@ -379,8 +403,8 @@ def raster_backward(theta, rect, pair_face, tile_start, tile_pairs, width, heigh
             ginv = gs0 = gs1 = gs2 = zero
             gr0 = gg0 = gb0_ = gr1 = gg1 = gb1_ = gr2 = gg2 = gb2_ = zero
             gz0 = gz1 = gz2 = gm0 = gm1 = gm2 = gop = zero
-            xa, xb = max(x0, rect[f, 0]), min(x1 - 1, rect[f, 2])
-            for iy in range(max(y0, rect[f, 1]), min(y1 - 1, rect[f, 3]) + 1):
+            xa, xb = max(x0, lrect[j, 0]), min(x1 - 1, lrect[j, 2])
+            for iy in range(max(y0, lrect[j, 1]), min(y1 - 1, lrect[j, 3]) + 1):
                 if row_active[iy - y0] == 0:
                     continue
                 py = np.float32(iy) + half
@@ -502,7 +526,7 @@ def raster_backward(theta, rect, pair_face, tile_start, tile_pairs, width, heigh
                 e0d += rL0
                 e1d += rL1
                 e2d += rL2
-            out = pair_grad[p]
+            out = pair_grad[ta + j]
             out[0], out[1], out[2], out[3], out[4], out[5], out[6], out[7], out[8] = (
                 e0x, e0y, e0d, e1x, e1y, e1d, e2x, e2y, e2d)
             out[T_INVR] = ginv
@@ -516,130 +540,135 @@ def raster_backward(theta, rect, pair_face, tile_start, tile_pairs, width, heigh
 
 
 @njit(parallel=True, cache=True, fastmath=True)
-def setup_backward(pos, faces, w2c, K, theta, argmin, pair_grad, pair_face, face_start, g_pos_f, g_rgb_f, g_op_f):
+def setup_backward(pos, faces, w2c, K, theta, argmin, pair_grad, pos_of, face_start, g_pos_f, g_rgb_f, g_op_f):
     """Per face: sum the pair gradients of THETA, then chain back through the setup to the face's vertices.
 
     Writes g_pos_f [F,3,3] (world positions), g_rgb_f [F,3,3] (vertex colours), g_op_f [F,3] (vertex opacities)."""
     F = faces.shape[0]
-    for f in prange(F):
-        a_, b_ = face_start[f], face_start[f + 1]
-        for k in range(3):
-            for c in range(3):
-                g_pos_f[f, k, c] = 0.0
-                g_rgb_f[f, k, c] = 0.0
-            g_op_f[f, k] = 0.0
-        if a_ == b_:
-            continue
+    for ch in prange(SETUP_CHUNKS):  # per-chunk scratch arrays: no allocation per face
         g = np.zeros(N_THETA)
-        for p in range(a_, b_):
-            for j in range(N_THETA):
-                g[j] += pair_grad[p, j]
-        # Recompute the forward quantities in float64.
         xc = np.empty((3, 3))
         uv = np.empty((3, 2))
-        for k in range(3):
-            v = faces[f, k]
-            for r in range(3):
-                xc[k, r] = w2c[r, 0] * pos[v, 0] + w2c[r, 1] * pos[v, 1] + w2c[r, 2] * pos[v, 2] + w2c[r, 3]
-            uv[k, 0] = (K[0, 0] * xc[k, 0] + K[0, 1] * xc[k, 1]) / xc[k, 2] + K[0, 2]
-            uv[k, 1] = (K[1, 0] * xc[k, 0] + K[1, 1] * xc[k, 1]) / xc[k, 2] + K[1, 2]
-        area2 = (uv[1, 0] - uv[0, 0]) * (uv[2, 1] - uv[0, 1]) - (uv[1, 1] - uv[0, 1]) * (uv[2, 0] - uv[0, 0])
-        sg = 1.0 if area2 >= 0 else -1.0
-        aa = abs(area2)
         g_uv = np.zeros((3, 2))
         g_xc = np.zeros((3, 3))
         lens = np.empty(3)
         ex = np.empty(3)
         ey = np.empty(3)
-        per = 0.0
-        for k in range(3):
-            k1 = (k + 1) % 3
-            ex[k], ey[k] = uv[k1, 0] - uv[k, 0], uv[k1, 1] - uv[k, 1]
-            lens[k] = math.sqrt(ex[k] * ex[k] + ey[k] * ey[k])
-            per += lens[k]
         g_len = np.zeros(3)
-        g_aa = 0.0
-        # inv_r = per / aa ; s_k = len_{k+1} / aa
-        g_invr = g[T_INVR]
-        for k in range(3):
-            g_len[k] += g_invr / aa
-        g_aa -= g_invr * per / (aa * aa)
-        for k in range(3):
-            k1 = (k + 1) % 3
-            g_len[k1] += g[T_S + k] / aa
-            g_aa -= g[T_S + k] * lens[k1] / (aa * aa)
-        # Edge lines: n_k = sg * (ey, -ex) / len, d_k = -n_k . uv_k
-        for k in range(3):
-            k1 = (k + 1) % 3
-            ln = lens[k]
-            nx, ny = sg * ey[k] / ln, -sg * ex[k] / ln
-            gnx, gny, gd = g[3 * k], g[3 * k + 1], g[3 * k + 2]
-            gnx -= gd * uv[k, 0]
-            gny -= gd * uv[k, 1]
-            g_uv[k, 0] -= gd * nx
-            g_uv[k, 1] -= gd * ny
-            # n = sg * qhat, q = (ey, -ex): g_q = (g_qhat - (g_qhat . qhat) qhat) / |q|, g_qhat = sg * g_n
-            qx, qy = sg * nx, sg * ny
-            gqx, gqy = sg * gnx, sg * gny
-            dot = gqx * qx + gqy * qy
-            gqx, gqy = (gqx - dot * qx) / ln, (gqy - dot * qy) / ln
-            gex, gey = -gqy, gqx
-            gex += g_len[k] * ex[k] / ln
-            gey += g_len[k] * ey[k] / ln
-            g_uv[k1, 0] += gex
-            g_uv[k1, 1] += gey
-            g_uv[k, 0] -= gex
-            g_uv[k, 1] -= gey
-        # |area2| = sg * ((u1-u0)(v2-v0) - (v1-v0)(u2-u0))
-        g_a2 = sg * g_aa
-        ax_, ay_ = uv[1, 0] - uv[0, 0], uv[1, 1] - uv[0, 1]
-        bx_, by_ = uv[2, 0] - uv[0, 0], uv[2, 1] - uv[0, 1]
-        g_uv[1, 0] += g_a2 * by_
-        g_uv[1, 1] -= g_a2 * bx_
-        g_uv[2, 0] -= g_a2 * ay_
-        g_uv[2, 1] += g_a2 * ax_
-        g_uv[0, 0] -= g_a2 * (by_ - ay_)
-        g_uv[0, 1] -= g_a2 * (ax_ - bx_)
-        # Projection u = (K00 x + K01 y)/z + K02, v = (K10 x + K11 y)/z + K12; and 1/z.
-        for k in range(3):
-            z = xc[k, 2]
-            gu, gv = g_uv[k, 0], g_uv[k, 1]
-            g_xc[k, 0] += (gu * K[0, 0] + gv * K[1, 0]) / z
-            g_xc[k, 1] += (gu * K[0, 1] + gv * K[1, 1]) / z
-            g_xc[k, 2] -= (gu * (uv[k, 0] - K[0, 2]) + gv * (uv[k, 1] - K[1, 2])) / z
-            g_xc[k, 2] -= g[T_ZI + k] / (z * z)
-        # Camera-facing unit normal: nrm = s * c / |c|, c = A x B, A = x1 - x0, B = x2 - x0.
-        ax, ay, az = xc[1, 0] - xc[0, 0], xc[1, 1] - xc[0, 1], xc[1, 2] - xc[0, 2]
-        bx, by, bz = xc[2, 0] - xc[0, 0], xc[2, 1] - xc[0, 1], xc[2, 2] - xc[0, 2]
-        cx, cy, cz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
-        clen = math.sqrt(cx * cx + cy * cy + cz * cz)
-        chx, chy, chz = cx / clen, cy / clen, cz / clen
-        s = -1.0 if chx * xc[0, 0] + chy * xc[0, 1] + chz * xc[0, 2] > 0 else 1.0
-        gx, gy, gz = s * g[T_NRM], s * g[T_NRM + 1], s * g[T_NRM + 2]
-        dot = gx * chx + gy * chy + gz * chz
-        gcx, gcy, gcz = (gx - dot * chx) / clen, (gy - dot * chy) / clen, (gz - dot * chz) / clen
-        # g_A = B x g_c, g_B = g_c x A
-        gAx, gAy, gAz = by * gcz - bz * gcy, bz * gcx - bx * gcz, bx * gcy - by * gcx
-        gBx, gBy, gBz = gcy * az - gcz * ay, gcz * ax - gcx * az, gcx * ay - gcy * ax
-        g_xc[1, 0] += gAx
-        g_xc[1, 1] += gAy
-        g_xc[1, 2] += gAz
-        g_xc[2, 0] += gBx
-        g_xc[2, 1] += gBy
-        g_xc[2, 2] += gBz
-        g_xc[0, 0] -= gAx + gBx
-        g_xc[0, 1] -= gAy + gBy
-        g_xc[0, 2] -= gAz + gBz
-        # World positions: x_c = R p + t  ->  g_p = R^T g_xc
-        for k in range(3):
-            for c in range(3):
-                g_pos_f[f, k, c] = w2c[0, c] * g_xc[k, 0] + w2c[1, c] * g_xc[k, 1] + w2c[2, c] * g_xc[k, 2]
-                g_rgb_f[f, k, c] = g[T_COL + 3 * k + c]
-        if argmin[f] >= 0:
-            g_op_f[f, argmin[f]] = g[T_OP]
-        else:
+        for f in range(ch * F // SETUP_CHUNKS, (ch + 1) * F // SETUP_CHUNKS):
+            a_, b_ = face_start[f], face_start[f + 1]
             for k in range(3):
-                g_op_f[f, k] = g[T_OP] / 3.0
+                for c in range(3):
+                    g_pos_f[f, k, c] = 0.0
+                    g_rgb_f[f, k, c] = 0.0
+                g_op_f[f, k] = 0.0
+            if a_ == b_:
+                continue
+            g[:] = 0.0
+            g_uv[:] = 0.0
+            g_xc[:] = 0.0
+            g_len[:] = 0.0
+            for p in range(a_, b_):
+                for j in range(N_THETA):
+                    g[j] += pair_grad[pos_of[p], j]
+            # Recompute the forward quantities in float64.
+            for k in range(3):
+                v = faces[f, k]
+                for r in range(3):
+                    xc[k, r] = w2c[r, 0] * pos[v, 0] + w2c[r, 1] * pos[v, 1] + w2c[r, 2] * pos[v, 2] + w2c[r, 3]
+                uv[k, 0] = (K[0, 0] * xc[k, 0] + K[0, 1] * xc[k, 1]) / xc[k, 2] + K[0, 2]
+                uv[k, 1] = (K[1, 0] * xc[k, 0] + K[1, 1] * xc[k, 1]) / xc[k, 2] + K[1, 2]
+            area2 = (uv[1, 0] - uv[0, 0]) * (uv[2, 1] - uv[0, 1]) - (uv[1, 1] - uv[0, 1]) * (uv[2, 0] - uv[0, 0])
+            sg = 1.0 if area2 >= 0 else -1.0
+            aa = abs(area2)
+            per = 0.0
+            for k in range(3):
+                k1 = (k + 1) % 3
+                ex[k], ey[k] = uv[k1, 0] - uv[k, 0], uv[k1, 1] - uv[k, 1]
+                lens[k] = math.sqrt(ex[k] * ex[k] + ey[k] * ey[k])
+                per += lens[k]
+            g_aa = 0.0
+            # inv_r = per / aa ; s_k = len_{k+1} / aa
+            g_invr = g[T_INVR]
+            for k in range(3):
+                g_len[k] += g_invr / aa
+            g_aa -= g_invr * per / (aa * aa)
+            for k in range(3):
+                k1 = (k + 1) % 3
+                g_len[k1] += g[T_S + k] / aa
+                g_aa -= g[T_S + k] * lens[k1] / (aa * aa)
+            # Edge lines: n_k = sg * (ey, -ex) / len, d_k = -n_k . uv_k
+            for k in range(3):
+                k1 = (k + 1) % 3
+                ln = lens[k]
+                nx, ny = sg * ey[k] / ln, -sg * ex[k] / ln
+                gnx, gny, gd = g[3 * k], g[3 * k + 1], g[3 * k + 2]
+                gnx -= gd * uv[k, 0]
+                gny -= gd * uv[k, 1]
+                g_uv[k, 0] -= gd * nx
+                g_uv[k, 1] -= gd * ny
+                # n = sg * qhat, q = (ey, -ex): g_q = (g_qhat - (g_qhat . qhat) qhat) / |q|, g_qhat = sg * g_n
+                qx, qy = sg * nx, sg * ny
+                gqx, gqy = sg * gnx, sg * gny
+                dot = gqx * qx + gqy * qy
+                gqx, gqy = (gqx - dot * qx) / ln, (gqy - dot * qy) / ln
+                gex, gey = -gqy, gqx
+                gex += g_len[k] * ex[k] / ln
+                gey += g_len[k] * ey[k] / ln
+                g_uv[k1, 0] += gex
+                g_uv[k1, 1] += gey
+                g_uv[k, 0] -= gex
+                g_uv[k, 1] -= gey
+            # |area2| = sg * ((u1-u0)(v2-v0) - (v1-v0)(u2-u0))
+            g_a2 = sg * g_aa
+            ax_, ay_ = uv[1, 0] - uv[0, 0], uv[1, 1] - uv[0, 1]
+            bx_, by_ = uv[2, 0] - uv[0, 0], uv[2, 1] - uv[0, 1]
+            g_uv[1, 0] += g_a2 * by_
+            g_uv[1, 1] -= g_a2 * bx_
+            g_uv[2, 0] -= g_a2 * ay_
+            g_uv[2, 1] += g_a2 * ax_
+            g_uv[0, 0] -= g_a2 * (by_ - ay_)
+            g_uv[0, 1] -= g_a2 * (ax_ - bx_)
+            # Projection u = (K00 x + K01 y)/z + K02, v = (K10 x + K11 y)/z + K12; and 1/z.
+            for k in range(3):
+                z = xc[k, 2]
+                gu, gv = g_uv[k, 0], g_uv[k, 1]
+                g_xc[k, 0] += (gu * K[0, 0] + gv * K[1, 0]) / z
+                g_xc[k, 1] += (gu * K[0, 1] + gv * K[1, 1]) / z
+                g_xc[k, 2] -= (gu * (uv[k, 0] - K[0, 2]) + gv * (uv[k, 1] - K[1, 2])) / z
+                g_xc[k, 2] -= g[T_ZI + k] / (z * z)
+            # Camera-facing unit normal: nrm = s * c / |c|, c = A x B, A = x1 - x0, B = x2 - x0.
+            ax, ay, az = xc[1, 0] - xc[0, 0], xc[1, 1] - xc[0, 1], xc[1, 2] - xc[0, 2]
+            bx, by, bz = xc[2, 0] - xc[0, 0], xc[2, 1] - xc[0, 1], xc[2, 2] - xc[0, 2]
+            cx, cy, cz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+            clen = math.sqrt(cx * cx + cy * cy + cz * cz)
+            chx, chy, chz = cx / clen, cy / clen, cz / clen
+            s = -1.0 if chx * xc[0, 0] + chy * xc[0, 1] + chz * xc[0, 2] > 0 else 1.0
+            gx, gy, gz = s * g[T_NRM], s * g[T_NRM + 1], s * g[T_NRM + 2]
+            dot = gx * chx + gy * chy + gz * chz
+            gcx, gcy, gcz = (gx - dot * chx) / clen, (gy - dot * chy) / clen, (gz - dot * chz) / clen
+            # g_A = B x g_c, g_B = g_c x A
+            gAx, gAy, gAz = by * gcz - bz * gcy, bz * gcx - bx * gcz, bx * gcy - by * gcx
+            gBx, gBy, gBz = gcy * az - gcz * ay, gcz * ax - gcx * az, gcx * ay - gcy * ax
+            g_xc[1, 0] += gAx
+            g_xc[1, 1] += gAy
+            g_xc[1, 2] += gAz
+            g_xc[2, 0] += gBx
+            g_xc[2, 1] += gBy
+            g_xc[2, 2] += gBz
+            g_xc[0, 0] -= gAx + gBx
+            g_xc[0, 1] -= gAy + gBy
+            g_xc[0, 2] -= gAz + gBz
+            # World positions: x_c = R p + t  ->  g_p = R^T g_xc
+            for k in range(3):
+                for c in range(3):
+                    g_pos_f[f, k, c] = w2c[0, c] * g_xc[k, 0] + w2c[1, c] * g_xc[k, 1] + w2c[2, c] * g_xc[k, 2]
+                    g_rgb_f[f, k, c] = g[T_COL + 3 * k + c]
+            if argmin[f] >= 0:
+                g_op_f[f, argmin[f]] = g[T_OP]
+            else:
+                for k in range(3):
+                    g_op_f[f, k] = g[T_OP] / 3.0
 
 
 @njit(cache=True)

@@ -25,6 +25,7 @@ class _Bins:
     pair_face: np.ndarray
     tile_start: np.ndarray
     tile_pairs: np.ndarray
+    pos_of: np.ndarray
     images: tuple
     bg: np.ndarray
 
@@ -51,7 +52,7 @@ def forward_numba(positions, faces, vertex_rgb, opacities, sigma, world_to_camer
     kn.setup_faces(pos, fc, w2c, Kn, rgb_v, op_v, opts.opacity_mode == "min", float(opts.near), float(opts.far),
                    float(opts.min_area_px), float(opts.grazing_cos), width, height, tile, theta, rect, key, argmin,
                    ntiles)
-    face_start, pair_face, tile_start, tile_pairs = kn.bin_faces(theta, rect, key, ntiles, width, height, tile)
+    face_start, pair_face, tile_start, tile_pairs, pos_of = kn.bin_faces(theta, rect, key, ntiles, width, height, tile)
     rgb = np.empty((height, width, 3), np.float32)
     alpha = np.empty((height, width), np.float32)
     depth = np.empty((height, width), np.float32)
@@ -62,8 +63,8 @@ def forward_numba(positions, faces, vertex_rgb, opacities, sigma, world_to_camer
     kn.raster_forward(theta, rect, pair_face, tile_start, tile_pairs, width, height, tile, float(sigma),
                       float(opts.alpha_min), float(opts.alpha_max), float(opts.transmittance_min),
                       bool(opts.perspective_correct), bg, rgb, alpha, depth, normal, face_id, pair_weight, evals)
-    max_weight = kn.reduce_max_weight(pair_weight, face_start)
-    bins = _Bins(pos, fc, w2c, Kn, theta, rect, argmin, face_start, pair_face, tile_start, tile_pairs,
+    max_weight = kn.reduce_max_weight(pair_weight, face_start, pos_of)
+    bins = _Bins(pos, fc, w2c, Kn, theta, rect, argmin, face_start, pair_face, tile_start, tile_pairs, pos_of,
                  (rgb, alpha, depth, normal), bg)
     return (rgb, alpha, depth, normal), max_weight, face_id, int(evals.sum()), int((ntiles > 0).sum()), bins
 
@@ -81,7 +82,7 @@ def backward_numba(bins: _Bins, sigma, width, height, opts: RenderOptions, g_rgb
     g_pos_f = np.empty((F, 3, 3), np.float32)
     g_rgb_f = np.empty((F, 3, 3), np.float32)
     g_op_f = np.empty((F, 3), np.float32)
-    kn.setup_backward(bins.pos, bins.faces, bins.w2c, bins.K, bins.theta, bins.argmin, pair_grad, bins.pair_face,
+    kn.setup_backward(bins.pos, bins.faces, bins.w2c, bins.K, bins.theta, bins.argmin, pair_grad, bins.pos_of,
                       bins.face_start, g_pos_f, g_rgb_f, g_op_f)
     V = bins.pos.shape[0]
     g_pos = np.zeros((V, 3), np.float32)
