@@ -82,7 +82,8 @@ def run_training(args: TrainArgs):
         data_path = run.config["data"]
     else:
         cfg = args.config
-        data_options = {"downscale": cfg.downscale, "background": list(cfg.background), "test_every": cfg.test_every}
+        data_options = {"downscale": cfg.downscale, "background": list(cfg.background), "test_every": cfg.test_every,
+                        "format": cfg.data_format}
         data_path = str(args.data.resolve())
     data = load_dataset(data_path, **data_options)
     trainer = Trainer(cfg, data, out, resume=args.resume, show_progress=not args.quiet,

@@ -21,6 +21,8 @@ class TrainConfig:
     """Image downscale factor applied by the loader (1, 2, 4, 8)."""
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
     """Background RGB the ground truth is composited over and the renderer draws behind the triangles."""
+    data_format: str = "auto"
+    """Capture format for the loader: auto | colmap | blender | ngp | rgbd (a folder holding several picks ngp)."""
     test_every: int = 8
     """For captures without splits, every n-th image is held out for testing."""
     # --- initialisation
