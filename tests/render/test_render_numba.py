@@ -97,3 +97,21 @@ def test_float32_inputs_and_numpy_inputs_work_alike():
     b = rasterize(pos.numpy(), faces.numpy(), col.numpy(), op.numpy(), SIGMA, w2c, K, 40, 32)
     assert a.rgb.dtype == torch.float32 and b.rgb.dtype == torch.float64
     torch.testing.assert_close(a.rgb.double(), b.rgb, atol=1e-5, rtol=0)
+
+
+def test_faces_crossing_the_near_plane_or_off_screen_are_culled_whole():
+    w2c = torch.eye(4, dtype=torch.float64)
+    K = torch.tensor([[40.0, 0, 20], [0, 40.0, 16], [0, 0, 1]], dtype=torch.float64)
+    crossing = torch.tensor([[-0.5, -0.5, 0.005], [0.5, -0.4, 2.0], [0.0, 0.5, 2.0]], dtype=torch.float64)
+    inside = crossing.clone()
+    inside[0, 2] = 0.05
+    off = torch.tensor([[3.0, 0, 2], [4.0, 0, 2], [3.5, 1, 2]], dtype=torch.float64)  # right of the image
+    faces = torch.tensor([[0, 1, 2]], dtype=torch.int32)
+    col, op = torch.ones(3, 3, dtype=torch.float64), torch.full((3,), 0.9, dtype=torch.float64)
+    for backend in ("numba", "reference"):
+        a = rasterize(crossing, faces, col, op, 0.5, w2c, K, 40, 32, near=0.01, backend=backend)
+        b = rasterize(inside, faces, col, op, 0.5, w2c, K, 40, 32, near=0.01, backend=backend)
+        assert a.alpha.max().item() == 0 and b.alpha.sum().item() > 20
+        assert a.faces_visible == 0 and b.faces_visible == 1
+    c = rasterize(off, faces, col, op, 0.5, w2c, K, 40, 32)
+    assert c.faces_visible == 0 and c.pairs_evaluated == 0 and c.alpha.max().item() == 0

@@ -232,6 +232,15 @@ def _gather_tile(theta, rect, pair_face, tile_pairs, a, b):
 
 
 @njit(cache=True, inline="always")
+def _shrink(T, t_min, r, tw, row_lo, row_hi):
+    """A pixel of tile row r just fell below t_min: move the row's active range past finished end pixels."""
+    while row_lo[r] <= row_hi[r] and T[r * tw + row_lo[r]] < t_min:
+        row_lo[r] += 1
+    while row_hi[r] >= row_lo[r] and T[r * tw + row_hi[r]] < t_min:
+        row_hi[r] -= 1
+
+
+@njit(cache=True, inline="always")
 def _recip(nx):
     return 1.0 / nx if abs(nx) > 1e-12 else 0.0
 
@@ -254,7 +263,8 @@ def raster_forward(theta, rect, pair_face, tile_start, tile_pairs, width, height
         T = np.ones(npx, np.float32)
         acc = np.zeros((npx, 7), np.float32)  # rgb, depth, normal
         fid = np.full(npx, -1, np.int64)
-        row_active = np.full(th_, tw, np.int64)  # pixels of each tile row still above transmittance_min
+        row_lo = np.zeros(th_, np.int64)  # per tile row, the first and last pixel still above transmittance_min
+        row_hi = np.full(th_, tw - 1, np.int64)
         active = npx
         evals = 0
         ta = tile_start[t]
@@ -270,7 +280,8 @@ def raster_forward(theta, rect, pair_face, tile_start, tile_pairs, width, height
             r0, r1, r2 = _recip(n0x), _recip(n1x), _recip(n2x)
             xa, xb = max(x0, lrect[j, 0]), min(x1 - 1, lrect[j, 2])
             for iy in range(max(y0, lrect[j, 1]), min(y1 - 1, lrect[j, 3]) + 1):
-                if row_active[iy - y0] == 0:
+                r = iy - y0
+                if row_lo[r] > row_hi[r]:
                     continue
                 py = np.float32(iy) + half
                 c0, c1, c2 = n0y * py + d0, n1y * py + d1, n2y * py + d2
@@ -280,8 +291,8 @@ def raster_forward(theta, rect, pair_face, tile_start, tile_pairs, width, height
                 xlo, xhi = _span(n2x, r2, c2, xlo, xhi)
                 if xlo > xhi:
                     continue
-                ixa = max(xa, int(math.ceil(xlo - 0.5)))
-                ixb = min(xb, int(math.floor(xhi - 0.5)))
+                ixa = max(max(xa, x0 + row_lo[r]), int(math.ceil(xlo - 0.5)))
+                ixb = min(min(xb, x0 + row_hi[r]), int(math.floor(xhi - 0.5)))
                 for ix in range(ixa, ixb + 1):
                     q = (iy - y0) * tw + (ix - x0)
                     Tq = T[q]
@@ -321,7 +332,7 @@ def raster_forward(theta, rect, pair_face, tile_start, tile_pairs, width, height
                         fid[q] = f
                     if Tn < t_min:
                         active -= 1
-                        row_active[iy - y0] -= 1
+                        _shrink(T, t_min, r, tw, row_lo, row_hi)
             pair_weight[ta + j] = maxw
         tile_evals[t] = evals
         for q in range(npx):
@@ -381,7 +392,8 @@ def raster_backward(theta, rect, pair_face, tile_start, tile_pairs, width, heigh
             gup[q, 4] = g_depth[iy, ix]
             total[q] = s
         active = npx
-        row_active = np.full(th_, tw, np.int64)
+        row_lo = np.zeros(th_, np.int64)
+        row_hi = np.full(th_, tw - 1, np.int64)
         ta = tile_start[t]
         loc, lrect, lf = _gather_tile(theta, rect, pair_face, tile_pairs, ta, tile_start[t + 1])
         for j in range(lf.shape[0]):
@@ -405,7 +417,8 @@ def raster_backward(theta, rect, pair_face, tile_start, tile_pairs, width, heigh
             gz0 = gz1 = gz2 = gm0 = gm1 = gm2 = gop = zero
             xa, xb = max(x0, lrect[j, 0]), min(x1 - 1, lrect[j, 2])
             for iy in range(max(y0, lrect[j, 1]), min(y1 - 1, lrect[j, 3]) + 1):
-                if row_active[iy - y0] == 0:
+                r = iy - y0
+                if row_lo[r] > row_hi[r]:
                     continue
                 py = np.float32(iy) + half
                 c0, c1, c2 = n0y * py + d0, n1y * py + d1, n2y * py + d2
@@ -415,8 +428,8 @@ def raster_backward(theta, rect, pair_face, tile_start, tile_pairs, width, heigh
                 xlo, xhi = _span(n2x, r2, c2, xlo, xhi)
                 if xlo > xhi:
                     continue
-                ixa = max(xa, int(math.ceil(xlo - 0.5)))
-                ixb = min(xb, int(math.floor(xhi - 0.5)))
+                ixa = max(max(xa, x0 + row_lo[r]), int(math.ceil(xlo - 0.5)))
+                ixb = min(min(xb, x0 + row_hi[r]), int(math.floor(xhi - 0.5)))
                 rL0 = rL1 = rL2 = zero  # row sums of dL_k (times px, and plain)
                 rP0 = rP1 = rP2 = zero
                 for ix in range(ixa, ixb + 1):
@@ -516,7 +529,7 @@ def raster_backward(theta, rect, pair_face, tile_start, tile_pairs, width, heigh
                     T[q] = Tn
                     if Tn < t_min:
                         active -= 1
-                        row_active[iy - y0] -= 1
+                        _shrink(T, t_min, r, tw, row_lo, row_hi)
                 e0x += rP0
                 e1x += rP1
                 e2x += rP2
