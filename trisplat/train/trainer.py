@@ -216,9 +216,10 @@ class Trainer:
             densify(ts, cfg.densify_growth, cfg.max_vertices, cfg.densify_largest, cfg.min_face_px, self.generator)
 
     def _connect(self) -> None:
-        from trisplat.mesh.connect import connect_scene
+        from trisplat.mesh.connect import ConnectConfig, connect_scene
 
-        connected, _report = connect_scene(self.ts.to_scene())
+        # layered soups make the restricted Delaunay keep several faces per edge: keep the two best-shaped ones
+        connected, _report = connect_scene(self.ts.to_scene(), ConnectConfig(repair_non_manifold_edges=True))
         ops.set_faces(self.ts, connected.faces)
         ops.remove_orphan_vertices(self.ts)
         self.connected = True
