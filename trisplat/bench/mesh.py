@@ -52,7 +52,7 @@ def torus_soup(num_vertices: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray
 
 
 def main(argv: list[str]) -> int:
-    args = tyro.cli(MeshBenchArgs, args=argv, description=__doc__)
+    args = tyro.cli(MeshBenchArgs, args=argv, prog="trisplat bench mesh", description=__doc__)
     from trisplat.mesh.restricted_delaunay import restricted_delaunay_report
     from trisplat.mesh.stats import mesh_statistics
 

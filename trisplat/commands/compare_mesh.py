@@ -27,7 +27,7 @@ class CompareMeshConfig:
 
 
 def main(argv: list[str]) -> int:
-    cfg = tyro.cli(CompareMeshConfig, args=argv, description=__doc__)
+    cfg = tyro.cli(CompareMeshConfig, args=argv, prog="trisplat compare-mesh", description=__doc__)
     metrics = compare_surfaces(load_surface(cfg.pred), load_surface(cfg.gt), cfg.threshold, cfg.samples, cfg.seed)
     print(json.dumps(metrics.to_dict(), indent=2))
     return 0

@@ -34,7 +34,7 @@ class ExportConfig:
 
 
 def main(argv: list[str]) -> int:
-    cfg = tyro.cli(ExportConfig, args=argv, description=__doc__)
+    cfg = tyro.cli(ExportConfig, args=argv, prog="trisplat export", description=__doc__)
     out = cfg.run / EXPORT_SUBDIR if cfg.out is None else cfg.out
     formats = tuple(dict.fromkeys(cfg.formats))
     assert set(formats) <= set(EXPORT_FORMATS)

@@ -99,7 +99,7 @@ def extract_run(args: ExtractArgs) -> ExtractResult:
 
 
 def main(argv: list[str]) -> int:
-    args = tyro.cli(ExtractArgs, args=argv, description=ExtractArgs.__doc__)
+    args = tyro.cli(ExtractArgs, args=argv, prog="trisplat extract", description=ExtractArgs.__doc__)
     r = extract_run(args)
     print(f"{r.masks} masked views; {r.faces_seen} of {r.faces} faces seen in them; "
           f"object: {r.object_faces} faces -> {r.object_path}; remainder: {r.remainder_faces} faces"

@@ -62,7 +62,7 @@ def describe(data) -> str:
 
 
 def main(argv: list[str]) -> int:
-    cfg = tyro.cli(InfoConfig, args=argv, description=__doc__)
+    cfg = tyro.cli(InfoConfig, args=argv, prog="trisplat info", description=__doc__)
     from trisplat.data import load_dataset
 
     data = load_dataset(cfg.path, downscale=cfg.downscale, test_every=cfg.test_every, format=cfg.format,

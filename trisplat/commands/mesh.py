@@ -33,7 +33,7 @@ class MeshConfig:
 
 
 def main(argv: list[str]) -> int:
-    cfg = tyro.cli(MeshConfig, args=argv, description=__doc__)
+    cfg = tyro.cli(MeshConfig, args=argv, prog="trisplat mesh", description=__doc__)
     from trisplat.io import export_mesh
     from trisplat.mesh.connect import ConnectConfig, connect_faces
     from trisplat.mesh.stats import mesh_statistics

@@ -43,7 +43,7 @@ def read_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
 
 
 def main(argv: list[str]) -> int:
-    cfg = tyro.cli(MeshStatsConfig, args=argv, description=__doc__)
+    cfg = tyro.cli(MeshStatsConfig, args=argv, prog="trisplat mesh-stats", description=__doc__)
     v, f = read_mesh(cfg.mesh)
     if cfg.weld_tolerance is not None:
         from trisplat.mesh.cleanup import CleanupConfig, clean_mesh

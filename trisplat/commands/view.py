@@ -30,7 +30,7 @@ def main(argv: list[str]) -> int:
     from trisplat.viewer.data import viewer_data_from_mesh, viewer_data_from_run
     from trisplat.viewer.server import ViewerServer
 
-    cfg = tyro.cli(ViewConfig, args=argv, description=__doc__)
+    cfg = tyro.cli(ViewConfig, args=argv, prog="trisplat view", description=__doc__)
     if cfg.target.is_dir():
         data = viewer_data_from_run(cfg.target)
     elif cfg.target.suffix.lower() in FORMATS:
