@@ -13,6 +13,7 @@ import tyro
 
 REFERENCE_MAX_FACES = 100_000  # the dense reference is run only up to this many faces ...
 REFERENCE_MAX_PIXELS = 256 * 256  # ... and this image size (it needs GBs and minutes beyond)
+GEN_CHUNK = 100_000  # triangles generated per chunk
 
 
 @dataclass
@@ -42,17 +43,22 @@ def random_triangles(n: int, width: int, height: int, size_px: tuple[float, floa
     rng = np.random.default_rng(seed)
     f = 0.8 * width
     K = np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1.0]])
-    c = rng.uniform([0, 0], [width, height], size=(n, 2))
-    s = rng.uniform(size_px[0], size_px[1], size=n)
-    ang = rng.uniform(0, 2 * np.pi, size=(n, 1)) + np.array([0, 2.1, 4.2]) + rng.normal(0, 0.25, size=(n, 3))
-    uv = c[:, None, :] + (s[:, None, None] / 2) * np.stack([np.cos(ang), np.sin(ang)], -1)  # [n,3,2]
-    z = rng.uniform(2, 10, size=(n, 1)) * (1 + rng.normal(0, 0.02, size=(n, 3)))
-    x = (uv[..., 0] - K[0, 2]) / f * z
-    y = (uv[..., 1] - K[1, 2]) / f * z
-    pos = np.stack([x, y, z], -1).reshape(-1, 3).astype(np.float32)
+    pos = np.empty((n, 3, 3), np.float32)
+    for a in range(0, n, GEN_CHUNK):  # in chunks, so that the generator's temporaries stay small
+        m = min(n, a + GEN_CHUNK) - a
+        c = rng.uniform([0, 0], [width, height], size=(m, 2))
+        s = rng.uniform(size_px[0], size_px[1], size=m)
+        ang = rng.uniform(0, 2 * np.pi, size=(m, 1)) + np.array([0, 2.1, 4.2]) + rng.normal(0, 0.25, size=(m, 3))
+        z = rng.uniform(2, 10, size=(m, 1)) * (1 + rng.normal(0, 0.02, size=(m, 3)))
+        u = c[:, None, 0] + (s[:, None] / 2) * np.cos(ang)
+        v = c[:, None, 1] + (s[:, None] / 2) * np.sin(ang)
+        pos[a:a + m, :, 0] = (u - K[0, 2]) / f * z
+        pos[a:a + m, :, 1] = (v - K[1, 2]) / f * z
+        pos[a:a + m, :, 2] = z
+    pos = pos.reshape(-1, 3)
     faces = np.arange(3 * n, dtype=np.int32).reshape(n, 3)
-    colors = rng.uniform(0, 1, size=(3 * n, 3)).astype(np.float32)
-    opac = rng.uniform(0.3, 0.9, size=3 * n).astype(np.float32)
+    colors = rng.random((3 * n, 3), dtype=np.float32)
+    opac = (0.3 + 0.6 * rng.random(3 * n, dtype=np.float32)).astype(np.float32)
     return pos, faces, colors, opac, np.eye(4), K
 
 

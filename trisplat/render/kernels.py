@@ -180,12 +180,12 @@ def bin_faces(theta, rect, key, ntiles, width, height, tile):
     for t in range(nt):
         tile_start[t + 1] += tile_start[t]
     fill = tile_start[:-1].copy()
-    tile_pairs = np.empty(tile_start[nt], np.int64)
+    tile_pairs = np.empty(tile_start[nt], np.int32)
     for p in range(P):
         t = pair_tile[p]
         tile_pairs[fill[t]] = p
         fill[t] += 1
-    pos_of = np.empty(P, np.int64)  # face-major pair index -> position in the tile-ordered lists
+    pos_of = np.empty(P, np.int32)  # face-major pair index -> position in the tile-ordered lists
     for t in prange(nt):
         a, b = tile_start[t], tile_start[t + 1]
         if b - a > 1:
@@ -553,11 +553,11 @@ def raster_backward(theta, rect, pair_face, tile_start, tile_pairs, width, heigh
 
 
 @njit(parallel=True, cache=True, fastmath=True)
-def setup_backward(pos, faces, w2c, K, theta, argmin, pair_grad, pos_of, face_start, g_pos_f, g_rgb_f, g_op_f):
-    """Per face: sum the pair gradients of THETA, then chain back through the setup to the face's vertices.
-
-    Writes g_pos_f [F,3,3] (world positions), g_rgb_f [F,3,3] (vertex colours), g_op_f [F,3] (vertex opacities)."""
-    F = faces.shape[0]
+def setup_backward(pos, faces, w2c, K, argmin, pair_grad, pos_of, face_start, f0, g_pos_f, g_rgb_f, g_op_f):
+    """Faces f0 .. f0 + len(g_pos_f) - 1: sum the pair gradients of THETA, then chain back through the setup to the
+    face's vertices. Writes g_pos_f [n,3,3] (world positions), g_rgb_f [n,3,3] (vertex colours), g_op_f [n,3]
+    (vertex opacities), row i for face f0 + i."""
+    F = g_pos_f.shape[0]
     for ch in prange(SETUP_CHUNKS):  # per-chunk scratch arrays: no allocation per face
         g = np.zeros(N_THETA)
         xc = np.empty((3, 3))
@@ -568,13 +568,14 @@ def setup_backward(pos, faces, w2c, K, theta, argmin, pair_grad, pos_of, face_st
         ex = np.empty(3)
         ey = np.empty(3)
         g_len = np.zeros(3)
-        for f in range(ch * F // SETUP_CHUNKS, (ch + 1) * F // SETUP_CHUNKS):
+        for i in range(ch * F // SETUP_CHUNKS, (ch + 1) * F // SETUP_CHUNKS):
+            f = f0 + i
             a_, b_ = face_start[f], face_start[f + 1]
             for k in range(3):
                 for c in range(3):
-                    g_pos_f[f, k, c] = 0.0
-                    g_rgb_f[f, k, c] = 0.0
-                g_op_f[f, k] = 0.0
+                    g_pos_f[i, k, c] = 0.0
+                    g_rgb_f[i, k, c] = 0.0
+                g_op_f[i, k] = 0.0
             if a_ == b_:
                 continue
             g[:] = 0.0
@@ -675,23 +676,22 @@ def setup_backward(pos, faces, w2c, K, theta, argmin, pair_grad, pos_of, face_st
             # World positions: x_c = R p + t  ->  g_p = R^T g_xc
             for k in range(3):
                 for c in range(3):
-                    g_pos_f[f, k, c] = w2c[0, c] * g_xc[k, 0] + w2c[1, c] * g_xc[k, 1] + w2c[2, c] * g_xc[k, 2]
-                    g_rgb_f[f, k, c] = g[T_COL + 3 * k + c]
+                    g_pos_f[i, k, c] = w2c[0, c] * g_xc[k, 0] + w2c[1, c] * g_xc[k, 1] + w2c[2, c] * g_xc[k, 2]
+                    g_rgb_f[i, k, c] = g[T_COL + 3 * k + c]
             if argmin[f] >= 0:
-                g_op_f[f, argmin[f]] = g[T_OP]
+                g_op_f[i, argmin[f]] = g[T_OP]
             else:
                 for k in range(3):
-                    g_op_f[f, k] = g[T_OP] / 3.0
+                    g_op_f[i, k] = g[T_OP] / 3.0
 
 
 @njit(cache=True)
-def scatter_vertices(faces, g_pos_f, g_rgb_f, g_op_f, g_pos, g_rgb, g_op):
-    """Accumulate per face-vertex gradients on the shared vertices (serial: no atomics needed)."""
-    F = faces.shape[0]
-    for f in range(F):
+def scatter_vertices(faces, f0, g_pos_f, g_rgb_f, g_op_f, g_pos, g_rgb, g_op):
+    """Accumulate the face-vertex gradients of faces f0.. on the shared vertices (serial: no atomics needed)."""
+    for i in range(g_pos_f.shape[0]):
         for k in range(3):
-            v = faces[f, k]
+            v = faces[f0 + i, k]
             for c in range(3):
-                g_pos[v, c] += g_pos_f[f, k, c]
-                g_rgb[v, c] += g_rgb_f[f, k, c]
-            g_op[v] += g_op_f[f, k]
+                g_pos[v, c] += g_pos_f[i, k, c]
+                g_rgb[v, c] += g_rgb_f[i, k, c]
+            g_op[v] += g_op_f[i, k]

@@ -9,6 +9,8 @@ import torch
 from trisplat.render import kernels as kn
 from trisplat.render.types import RenderOptions, RenderOutput
 
+BACKWARD_FACE_CHUNK = 1 << 16  # faces per chunk of the per-face backward (bounds its scratch memory)
+
 
 @dataclass
 class _Bins:
@@ -79,16 +81,19 @@ def backward_numba(bins: _Bins, sigma, width, height, opts: RenderOptions, g_rgb
                        float(opts.transmittance_min), bool(opts.perspective_correct), bins.bg, rgb, alpha, depth,
                        normal, g_rgb, g_alpha, g_depth, g_normal, pair_grad)
     F = bins.faces.shape[0]
-    g_pos_f = np.empty((F, 3, 3), np.float32)
-    g_rgb_f = np.empty((F, 3, 3), np.float32)
-    g_op_f = np.empty((F, 3), np.float32)
-    kn.setup_backward(bins.pos, bins.faces, bins.w2c, bins.K, bins.theta, bins.argmin, pair_grad, bins.pos_of,
-                      bins.face_start, g_pos_f, g_rgb_f, g_op_f)
     V = bins.pos.shape[0]
     g_pos = np.zeros((V, 3), np.float32)
     g_rgbv = np.zeros((V, 3), np.float32)
     g_op = np.zeros(V, np.float32)
-    kn.scatter_vertices(bins.faces, g_pos_f, g_rgb_f, g_op_f, g_pos, g_rgbv, g_op)
+    n = min(F, BACKWARD_FACE_CHUNK)
+    g_pos_f = np.empty((n, 3, 3), np.float32)
+    g_rgb_f = np.empty((n, 3, 3), np.float32)
+    g_op_f = np.empty((n, 3), np.float32)
+    for f0 in range(0, F, BACKWARD_FACE_CHUNK):  # chunks keep the per-face-vertex buffers small
+        m = min(F, f0 + BACKWARD_FACE_CHUNK) - f0
+        kn.setup_backward(bins.pos, bins.faces, bins.w2c, bins.K, bins.argmin, pair_grad, bins.pos_of,
+                          bins.face_start, f0, g_pos_f[:m], g_rgb_f[:m], g_op_f[:m])
+        kn.scatter_vertices(bins.faces, f0, g_pos_f[:m], g_rgb_f[:m], g_op_f[:m], g_pos, g_rgbv, g_op)
     return g_pos, g_rgbv, g_op
 
 
