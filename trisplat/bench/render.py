@@ -62,6 +62,14 @@ def random_triangles(n: int, width: int, height: int, size_px: tuple[float, floa
     return pos, faces, colors, opac, np.eye(4), K
 
 
+def _current_rss_mb() -> float:
+    """Resident set size of this process now, MiB (Linux)."""
+    try:
+        return int(Path("/proc/self/statm").read_text().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+    except (OSError, ValueError):
+        return float("nan")
+
+
 def _run_case(width: int, height: int, n: int, lo: float, hi: float, with_ref: bool, repeats: int, sigma: float):
     import torch
 
@@ -84,9 +92,10 @@ def _run_case(width: int, height: int, n: int, lo: float, hi: float, with_ref: b
         P.grad = C.grad = O.grad = None
         return out
 
+    row = {"size": f"{width}x{height}", "faces": n, "px": f"{lo:g}-{hi:g}", "base_rss_mb": _current_rss_mb()}
     out = fwd()
-    row = {"size": f"{width}x{height}", "faces": n, "px": f"{lo:g}-{hi:g}", "pairs": out.pairs_evaluated,
-           "visible": out.faces_visible}
+    row.update(pairs=out.pairs_evaluated, visible=out.faces_visible)
+    del out
     row["fwd_ms"] = median_ms(fwd, repeats=repeats)
     row["fwd_bwd_ms"] = median_ms(fwd_bwd, repeats=repeats)
     hard = lambda: rasterize_hard(pos, faces, col, w2c, K, width, height)  # noqa: E731
@@ -117,7 +126,8 @@ def main(argv: list[str] | None = None) -> int:
 
     from trisplat.bench.common import BenchTable
 
-    cols = ["image", "faces", "tri px", "pairs evaluated", "fwd ms", "fwd+bwd ms", "peak RSS MB", "ref fwd+bwd ms",
+    cols = ["image", "faces", "tri px", "pairs evaluated", "fwd ms", "fwd+bwd ms", "peak RSS MB", "RSS before MB",
+            "ref fwd+bwd ms",
             "ref peak RSS MB", "speed-up vs ref", "hard ms", "hard FPS"]
     table = BenchTable("render", cols)
     cases = CASES[:3] if cfg.quick else CASES
@@ -128,17 +138,20 @@ def main(argv: list[str] | None = None) -> int:
         proc = subprocess.run(cmd, capture_output=True, text=True)
         lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")]
         if proc.returncode != 0 or not lines:
-            table.add(f"{w}x{h}", n, f"{lo}-{hi}", *(["failed"] + [None] * 8))
+            table.add(f"{w}x{h}", n, f"{lo}-{hi}", *(["failed"] + [None] * 9))
             print(proc.stderr[-2000:], file=sys.stderr)
             continue
         r = json.loads(lines[-1][7:])
         ref_ms = r.get("ref_fwd_bwd_ms")
-        table.add(r["size"], n, r["px"], r["pairs"], r["fwd_ms"], r["fwd_bwd_ms"], r["peak_rss_mb"], ref_ms,
+        table.add(r["size"], n, r["px"], r["pairs"], r["fwd_ms"], r["fwd_bwd_ms"], r["peak_rss_mb"], r["base_rss_mb"],
+                  ref_ms,
                   r.get("ref_peak_rss_mb"), ref_ms / r["fwd_bwd_ms"] if ref_ms else None, r["hard_ms"], r["hard_fps"])
-    table.notes.append("Medians over --repeats runs after one warm-up; each case runs in its own process so peak RSS "
-                       "is per case (it includes the Python/torch/numba baseline, about 300-400 MB). The dense "
-                       "reference is timed once. fwd+bwd includes the loss backward to positions, colours and "
-                       "opacities. The machine is shared: numbers are noisy.")
+    table.notes.append("Medians over --repeats runs after one warm-up. Each case runs in its own process, so peak RSS "
+                       "is per case; it includes the Python/torch/numba baseline and the scene arrays, shown as "
+                       "'RSS before' (measured before the first render). The dense reference is timed once. "
+                       "fwd+bwd = render + a loss on rgb, alpha, depth and normal + backward to positions, colours "
+                       "and opacities. 'pairs evaluated' = (pixel, face) window evaluations of the Numba kernel. "
+                       "Hard = z-buffer render (rasterize_hard). On a shared machine the numbers are noisy.")
     md = table.write(cfg.out, "trisplat bench render " + " ".join(argv or []))
     print(md.read_text())
     return 0

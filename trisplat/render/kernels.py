@@ -5,7 +5,10 @@ Stages (all compiled, parallel, no atomics):
   bin_faces        exact triangle/tile overlap (separating axes), per-tile lists sorted by centroid depth
   raster_forward   one task per tile: front-to-back compositing over per-row spans
   raster_backward  one task per tile: the exact gradient of the loss w.r.t. THETA per (tile, face) pair
-  reduce_pairs / setup_backward   pair gradients -> per face -> per face-vertex (positions, colours, opacity)
+  setup_backward   pair gradients -> per face -> per face-vertex (positions, colours, opacity), exact chain
+                   rule through the edge lines, the incentre normaliser 1/r = perimeter / (2 area), the
+                   barycentric scales, 1/z, the camera-facing normal and the projection
+  scatter_vertices face-vertex gradients -> shared vertices (serial, so no atomics)
 The per-face parameter vector THETA (float32) is the narrow boundary between the stages; its layout is below.
 """
 from __future__ import annotations

@@ -21,8 +21,10 @@ def _cross2(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 def project_faces(positions, faces, world_to_camera, K, opts: RenderOptions):
     """Item 1 and 2: camera-frame triangles, screen triangles, culling, edge lines, incentre normaliser.
 
-    Returns a dict-free tuple: tri_cam [F,3,3], uv [F,3,2], keep [F] bool, normal [F,3] (camera-facing unit,
-    camera frame), edge normals n [F,3,2], offsets d [F,3], phi_s [F] (= phi at the incentre = -inradius).
+    Returns tri_cam [F,3,3], uv [F,3,2], keep [F] bool, normal [F,3] (camera-facing unit, camera frame), edge
+    normals n [F,3,2], offsets d [F,3], phi_s [F] (phi at the incentre = -inradius) and area2 [F] (signed twice
+    the screen area). keep drops faces with a vertex nearer than opts.near, faces entirely beyond opts.far,
+    degenerate (area < opts.min_area_px) and grazing (|cos| < opts.grazing_cos) faces.
     """
     R, t = world_to_camera[:3, :3], world_to_camera[:3, 3]
     cam = positions @ R.T + t  # [V,3]
@@ -106,6 +108,8 @@ def render_reference(positions, faces, vertex_rgb, opacities, sigma: float, worl
     """One view, densely. positions [V,3], faces long [F,3], vertex_rgb [V,3], opacities [V], background [3].
 
     world_to_camera [4,4] and K [3,3] are tensors of the positions' dtype. Images are [H,W,...].
+    pairs_evaluated counts every (pixel, face) pair of the dense blocks; faces_visible counts the faces kept by the
+    culling above (off-screen ones included, unlike the kernels, which count faces overlapping a tile).
     """
     dtype, dev = positions.dtype, positions.device
     faces = faces.long()
