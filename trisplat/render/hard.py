@@ -196,6 +196,10 @@ def hard_resolve(uvz, pos, faces, w2c, colors, fid, width, height, perspective, 
     """Interpolate the winning face's vertex colours, its depth and camera-facing normal at every pixel centre."""
     for iy in prange(height):
         py = iy + 0.5
+        last = -1  # per-face values are reused along a row while the winning face stays the same
+        u0 = v0 = z0 = u1 = v1 = z1 = u2 = v2 = z2 = ia = 0.0
+        i0 = i1 = i2 = 0
+        nx = ny = nz = 0.0
         for ix in range(width):
             f = fid[iy * width + ix]
             if f < 0:
@@ -204,38 +208,41 @@ def hard_resolve(uvz, pos, faces, w2c, colors, fid, width, height, perspective, 
                     normal[iy, ix, c] = 0.0
                 depth[iy, ix] = 0.0
                 continue
+            if f != last:
+                last = f
+                u0, v0, z0 = uvz[f, 0], uvz[f, 1], uvz[f, 2]
+                u1, v1, z1 = uvz[f, 3], uvz[f, 4], uvz[f, 5]
+                u2, v2, z2 = uvz[f, 6], uvz[f, 7], uvz[f, 8]
+                ia = 1.0 / ((u1 - u0) * (v2 - v0) - (v1 - v0) * (u2 - u0))
+                i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
+                # Camera-frame normal from the world positions (rotation only), turned towards the camera.
+                ax, ay, az = pos[i1, 0] - pos[i0, 0], pos[i1, 1] - pos[i0, 1], pos[i1, 2] - pos[i0, 2]
+                bx, by, bz = pos[i2, 0] - pos[i0, 0], pos[i2, 1] - pos[i0, 1], pos[i2, 2] - pos[i0, 2]
+                wx, wy, wz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+                cx = w2c[0, 0] * wx + w2c[0, 1] * wy + w2c[0, 2] * wz
+                cy = w2c[1, 0] * wx + w2c[1, 1] * wy + w2c[1, 2] * wz
+                cz = w2c[2, 0] * wx + w2c[2, 1] * wy + w2c[2, 2] * wz
+                X0 = w2c[0, 0] * pos[i0, 0] + w2c[0, 1] * pos[i0, 1] + w2c[0, 2] * pos[i0, 2] + w2c[0, 3]
+                Y0 = w2c[1, 0] * pos[i0, 0] + w2c[1, 1] * pos[i0, 1] + w2c[1, 2] * pos[i0, 2] + w2c[1, 3]
+                Z0 = w2c[2, 0] * pos[i0, 0] + w2c[2, 1] * pos[i0, 1] + w2c[2, 2] * pos[i0, 2] + w2c[2, 3]
+                ln = math.sqrt(cx * cx + cy * cy + cz * cz)
+                if cx * X0 + cy * Y0 + cz * Z0 > 0:
+                    ln = -ln
+                if ln != 0.0:
+                    nx, ny, nz = cx / ln, cy / ln, cz / ln
+                else:
+                    nx, ny, nz = 0.0, 0.0, 0.0
             px = ix + 0.5
-            u0, v0, z0 = uvz[f, 0], uvz[f, 1], uvz[f, 2]
-            u1, v1, z1 = uvz[f, 3], uvz[f, 4], uvz[f, 5]
-            u2, v2, z2 = uvz[f, 6], uvz[f, 7], uvz[f, 8]
-            ia = 1.0 / ((u1 - u0) * (v2 - v0) - (v1 - v0) * (u2 - u0))
             b0 = ((u1 - px) * (v2 - py) - (v1 - py) * (u2 - px)) * ia
             b1 = ((u2 - px) * (v0 - py) - (v2 - py) * (u0 - px)) * ia
             b2 = 1.0 - b0 - b1
             zinv = b0 * z0 + b1 * z1 + b2 * z2
             if perspective:
                 b0, b1, b2 = b0 * z0 / zinv, b1 * z1 / zinv, b2 * z2 / zinv
-            i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
             for c in range(3):
                 rgb[iy, ix, c] = b0 * colors[i0, c] + b1 * colors[i1, c] + b2 * colors[i2, c]
             depth[iy, ix] = 1.0 / zinv
-            # Camera-frame normal from the world positions (rotation only), turned towards the camera.
-            ax, ay, az = pos[i1, 0] - pos[i0, 0], pos[i1, 1] - pos[i0, 1], pos[i1, 2] - pos[i0, 2]
-            bx, by, bz = pos[i2, 0] - pos[i0, 0], pos[i2, 1] - pos[i0, 1], pos[i2, 2] - pos[i0, 2]
-            wx, wy, wz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
-            cx = w2c[0, 0] * wx + w2c[0, 1] * wy + w2c[0, 2] * wz
-            cy = w2c[1, 0] * wx + w2c[1, 1] * wy + w2c[1, 2] * wz
-            cz = w2c[2, 0] * wx + w2c[2, 1] * wy + w2c[2, 2] * wz
-            X0 = w2c[0, 0] * pos[i0, 0] + w2c[0, 1] * pos[i0, 1] + w2c[0, 2] * pos[i0, 2] + w2c[0, 3]
-            Y0 = w2c[1, 0] * pos[i0, 0] + w2c[1, 1] * pos[i0, 1] + w2c[1, 2] * pos[i0, 2] + w2c[1, 3]
-            Z0 = w2c[2, 0] * pos[i0, 0] + w2c[2, 1] * pos[i0, 1] + w2c[2, 2] * pos[i0, 2] + w2c[2, 3]
-            ln = math.sqrt(cx * cx + cy * cy + cz * cz)
-            if cx * X0 + cy * Y0 + cz * Z0 > 0:
-                ln = -ln
-            if ln != 0.0:
-                normal[iy, ix, 0], normal[iy, ix, 1], normal[iy, ix, 2] = cx / ln, cy / ln, cz / ln
-            else:
-                normal[iy, ix, 0], normal[iy, ix, 1], normal[iy, ix, 2] = 0.0, 0.0, 0.0
+            normal[iy, ix, 0], normal[iy, ix, 1], normal[iy, ix, 2] = nx, ny, nz
 
 
 def rasterize_hard(positions, faces, colors, world_to_camera, K, width, height, background=None, near: float = 0.01,
