@@ -149,9 +149,11 @@ def setup_faces(pos, faces, w2c, K, rgb, opac, opacity_min, near, far, min_area,
 
 
 @njit(parallel=True, cache=True)
-def bin_faces(theta, rect, key, ntiles, width, height, tile):
+def bin_faces(theta, rect, ntiles, order, width, height, tile):
     """Pairs (face-major order) and per-tile lists of pair indices sorted front to back.
 
+    order [F] lists the faces by increasing sort key (centroid depth), equal keys in face order (a stable sort):
+    filling the tile lists in that order leaves each list sorted, with no per-tile sort.
     Returns face_start [F+1], pair_face [P], tile_start [NT+1], tile_pairs [P] (indices into the face-major
     pair arrays) and its inverse pos_of [P]."""
     F = ntiles.shape[0]
@@ -184,23 +186,14 @@ def bin_faces(theta, rect, key, ntiles, width, height, tile):
         tile_start[t + 1] += tile_start[t]
     fill = tile_start[:-1].copy()
     tile_pairs = np.empty(tile_start[nt], np.int32)
-    for p in range(P):
-        t = pair_tile[p]
-        tile_pairs[fill[t]] = p
-        fill[t] += 1
     pos_of = np.empty(P, np.int32)  # face-major pair index -> position in the tile-ordered lists
-    for t in prange(nt):
-        a, b = tile_start[t], tile_start[t + 1]
-        if b - a > 1:
-            ks = np.empty(b - a, np.float32)
-            for i in range(a, b):
-                ks[i - a] = key[pair_face[tile_pairs[i]]]
-            order = np.argsort(ks, kind="mergesort")  # stable: equal depths keep the face order
-            seg = tile_pairs[a:b].copy()
-            for i in range(b - a):
-                tile_pairs[a + i] = seg[order[i]]
-        for i in range(a, b):
-            pos_of[tile_pairs[i]] = i
+    for i in range(F):
+        f = order[i]
+        for p in range(face_start[f], face_start[f + 1]):
+            t = pair_tile[p]
+            tile_pairs[fill[t]] = p
+            pos_of[p] = fill[t]
+            fill[t] += 1
     return face_start, pair_face, tile_start, tile_pairs, pos_of
 
 

@@ -54,7 +54,11 @@ def forward_numba(positions, faces, vertex_rgb, opacities, sigma, world_to_camer
     kn.setup_faces(pos, fc, w2c, Kn, rgb_v, op_v, opts.opacity_mode == "min", float(opts.near), float(opts.far),
                    float(opts.min_area_px), float(opts.grazing_cos), width, height, tile, theta, rect, key, argmin,
                    ntiles)
-    face_start, pair_face, tile_start, tile_pairs, pos_of = kn.bin_faces(theta, rect, key, ntiles, width, height, tile)
+    # Front-to-back face order: a stable sort of the depth keys (positive float32 depths order like their int32
+    # bits, which numpy sorts by radix); culled faces (key 0, no tiles) sort first and are skipped by the binning.
+    order = np.argsort(key.view(np.int32), kind="stable").astype(np.int32)
+    face_start, pair_face, tile_start, tile_pairs, pos_of = kn.bin_faces(theta, rect, ntiles, order, width, height,
+                                                                         tile)
     rgb = np.empty((height, width, 3), np.float32)
     alpha = np.empty((height, width), np.float32)
     depth = np.empty((height, width), np.float32)
