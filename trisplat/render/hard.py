@@ -255,9 +255,7 @@ def rasterize_hard(positions, faces, colors, world_to_camera, K, width, height, 
     (view depth, 0 where empty), normal (camera-facing unit face normal, camera frame), face_id (-1 where empty),
     max_weight (1 for faces that win at least one pixel), pairs_evaluated (pixel/face depth tests).
     """
-    n = positions.shape[0] if hasattr(positions, "shape") and len(positions.shape) == 2 else 0
-    vi = validate(positions, faces, colors, np.ones(n, np.float32), 1.0, world_to_camera, K, width, height,
-                  background)
+    vi = validate(positions, faces, colors, None, 1.0, world_to_camera, K, width, height, background)
     if not near > 0:
         raise ValueError(f"near must be > 0, got {near}")
     outs = []
@@ -289,9 +287,9 @@ def rasterize_hard(positions, faces, colors, world_to_camera, K, width, height, 
             bg = vi.background.to(torch.float32).cpu().numpy()
             hard_resolve(uvz, pos, fc, w2c_np, col, fid, W, H, bool(perspective_correct), bg, rgb, depth, normal)
             face_id = torch.from_numpy(fid.reshape(H, W)).long()
-            won = torch.zeros(F, dtype=vi.positions.dtype)
-            if F:
-                won[face_id[face_id >= 0]] = 1.0
+            won_np = np.zeros(F, np.float32)
+            won_np[fid[fid >= 0]] = 1.0
+            won = torch.from_numpy(won_np).to(vi.positions.dtype)
             dt = vi.positions.dtype
             outs.append(RenderOutput(rgb=torch.from_numpy(rgb).to(dt), alpha=(face_id >= 0).to(dt),
                                      depth=torch.from_numpy(depth).to(dt), normal=torch.from_numpy(normal).to(dt),

@@ -120,7 +120,8 @@ def check_camera(world_to_camera, K, dtype, device) -> tuple[torch.Tensor, torch
 
 
 def validate(positions, faces, colors, opacities, sigma, world_to_camera, K, width, height, background) -> ViewInputs:
-    """Check everything rasterize() receives; errors name the argument and what was expected."""
+    """Check everything rasterize() receives; errors name the argument and what was expected (opacities None: unused,
+    ones)."""
     pos = _as_tensor(positions, "positions")
     if not pos.is_floating_point():
         raise ValueError(f"positions must be a float tensor, got dtype {pos.dtype}")
@@ -148,12 +149,15 @@ def validate(positions, faces, colors, opacities, sigma, world_to_camera, K, wid
         raise ValueError(f"colors must be [V,3] RGB or [V,(d+1)^2,3] SH with V={V}, got {tuple(col.shape)}")
     if scan(col, bounds=False)[0]:
         raise ValueError("colors hold NaN or Inf")
-    op = _as_tensor(opacities, "opacities", dev)
-    if not op.is_floating_point() or op.shape != (V,):
-        raise ValueError(f"opacities must be a float [V] tensor with V={V}, got {tuple(op.shape)} {op.dtype}")
-    bad, lo, hi = scan(op)
-    if bad or op.numel() and (lo < 0 or hi > 1):
-        raise ValueError("opacities must lie in [0, 1] (already through the sigmoid)")
+    if opacities is None:  # callers that use no opacities (hard mode): ones, as a zero-stride view (nothing to scan)
+        op = torch.ones(1, dtype=dtype, device=dev).expand(V)
+    else:
+        op = _as_tensor(opacities, "opacities", dev)
+        if not op.is_floating_point() or op.shape != (V,):
+            raise ValueError(f"opacities must be a float [V] tensor with V={V}, got {tuple(op.shape)} {op.dtype}")
+        bad, lo, hi = scan(op)
+        if bad or op.numel() and (lo < 0 or hi > 1):
+            raise ValueError("opacities must lie in [0, 1] (already through the sigmoid)")
     if isinstance(sigma, torch.Tensor):
         sigma = float(sigma.detach())
     if isinstance(sigma, bool) or not isinstance(sigma, (int, float)) or not np.isfinite(sigma) or sigma <= 0:
