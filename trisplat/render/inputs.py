@@ -17,15 +17,17 @@ OPACITY_MODES = ("min", "mean")
 def scan(t: torch.Tensor, bounds: bool = True) -> tuple[int, float, float]:
     """Non-finite count, min and max of a tensor's values (vectorised numpy reductions, no big temporaries).
 
-    Finiteness is read off a float64 sum (a sum of finite float32 values cannot overflow it; for float64 input an
-    overflowing sum is re-checked), so the all-finite case costs one pass; the count is made only on failure."""
+    Finiteness is read off a sum in the array's own dtype (one fast vectorised pass; NaN or Inf in the input always
+    makes it non-finite); only a non-finite sum, which finite but huge values can also give, is re-checked element
+    by element, and the count is made only on failure."""
     a = t.detach().cpu().reshape(-1).numpy()
     if a.size == 0:
         return 0, 0.0, 0.0
     bad = 0
     if a.dtype.kind == "f":
-        total = np.add.reduce(a, dtype=np.float64)
-        if not np.isfinite(total) and not (a.dtype == np.float64 and np.isfinite(a).all()):
+        with np.errstate(over="ignore", invalid="ignore"):
+            total = np.add.reduce(a)
+        if not np.isfinite(total) and not np.isfinite(a).all():
             bad = int(a.size - np.count_nonzero(np.isfinite(a)))
     if not bounds:
         return bad, 0.0, 0.0
