@@ -131,3 +131,39 @@ def test_minutes_plan_prices_supersampled_steps(tiny_scene, tmp_path):
     p = tr.clock.p(100)
     tr._plan_minutes(0.1, 30.0)
     assert tr.clock.p(100) == pytest.approx(p) and tr.clock.total > 100
+
+
+def test_nan_rolls_back_with_lower_learning_rate_then_gives_up(tiny_scene, tmp_path):
+    from trisplat.train.trainer import MAX_ROLLBACKS, TrainingDiverged
+
+    tr = _trainer(tiny_scene, tmp_path / "nan", steps=12, checkpoint_every_s=0.0)
+    real_step = tr.train_step
+    poisoned = {8}
+
+    def step_with_nan():
+        if tr.step in poisoned:
+            poisoned.discard(tr.step)
+            with torch.no_grad():
+                tr.ts.params["sh_dc"][0, 0, 0] = float("nan")
+        return real_step()
+
+    tr.train_step = step_with_nan
+    result = tr.train()
+    assert tr.rollbacks == 1 and tr.lr_scale == 0.5
+    assert result.steps == 12 and all(torch.isfinite(v).all() for v in tr.ts.params.values())
+    # a NaN that keeps coming back ends the run with a clear message and the last good checkpoint intact
+    tr2 = _trainer(tiny_scene, tmp_path / "nan2", steps=12, checkpoint_every_s=0.0)
+    real_step2 = tr2.train_step
+
+    def always_nan():
+        if tr2.step >= 5:
+            with torch.no_grad():
+                tr2.ts.params["positions"][0, 0] = float("inf")
+        return real_step2()
+
+    tr2.train_step = always_nan
+    with pytest.raises(TrainingDiverged, match="NaN/Inf"):
+        tr2.train()
+    assert tr2.rollbacks == MAX_ROLLBACKS + 1
+    ckpt = torch.load(tmp_path / "nan2" / layout.CHECKPOINT, weights_only=False)
+    assert all(torch.isfinite(v).all() for v in ckpt["params"].values())

@@ -43,8 +43,9 @@ class TrainResult:
 
 
 def psnr_value(pred: torch.Tensor, gt: torch.Tensor) -> float:
-    mse = float(((pred - gt) ** 2).mean())
-    return float("inf") if mse == 0 else -10.0 * math.log10(mse)
+    from trisplat.eval.image_metrics import psnr_torch
+
+    return float(psnr_torch(pred, gt))
 
 
 def view_for_step(step: int, train_indices: np.ndarray, seed: int) -> int:
@@ -156,8 +157,15 @@ class Trainer:
         for group in self.ts.optimizer.param_groups:
             group["lr"] = lrs[group["name"]] * self.lr_scale
 
+    def _params_finite(self) -> bool:
+        return all(bool(torch.isfinite(v).all()) for v in self.ts.params.values())
+
     def train_step(self) -> dict:
+        """One optimisation step; {"ok": False} when the loss, a gradient or a parameter is NaN/Inf (the caller
+        rolls back)."""
         cfg, step = self.cfg, self.step
+        if not self._params_finite():
+            return {"ok": False}
         p = self.clock.p(step)
         self._set_learning_rates(p)
         new_floor = schedules.opacity_floor(p, cfg)
@@ -185,7 +193,7 @@ class Trainer:
             return {"ok": False}
         self.ts.optimizer.step()
         self.ts.optimizer.zero_grad(set_to_none=True)
-        if not all(torch.isfinite(v).all() for v in self.ts.params.values()):
+        if not self._params_finite():
             return {"ok": False}
         with torch.no_grad():
             st = self.ts.face_stats
