@@ -48,7 +48,7 @@ def write_outputs(trainer, pruned) -> dict:
     scene = trainer.ts.to_scene()
     normalization = np.asarray(data.normalization, dtype=np.float64)
     write_model_files(run_dir, scene, normalization)
-    trainer._write_state(finished=True)  # evaluation reads the final sigma from state.json
+    # state.json stays "unfinished" until metrics.json exists, so a crash here is redone by --resume
 
     renders = run_dir / layout.RENDERS
     renders.mkdir(exist_ok=True)
