@@ -12,6 +12,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from trisplat.mesh.arrays import mesh_arrays
 from trisplat.mesh.orient import orient_faces
 
 
@@ -137,16 +138,8 @@ def non_manifold_excess_faces(vertices: np.ndarray, faces: np.ndarray, max_round
 def clean_mesh(vertices: np.ndarray, faces: np.ndarray, config: CleanupConfig = CleanupConfig()) -> CleanupResult:
     """Apply the cleanup steps of `config` in order: weld, drop degenerate, drop duplicates, remove fragments,
     orient, compact. vertices [V,3]; faces int [F,3]."""
-    v = np.asarray(vertices, dtype=np.float64)
-    f = np.asarray(faces)
-    if v.ndim != 2 or v.shape[1] != 3:
-        raise ValueError(f"vertices must be [V,3], got shape {v.shape}")
-    if f.ndim != 2 or f.shape[1] != 3:
-        raise ValueError(f"faces must be [F,3], got shape {f.shape}")
-    f = f.astype(np.int64)
+    v, f = mesh_arrays(vertices, faces)
     V = len(v)
-    if f.size and (f.min() < 0 or f.max() >= V):
-        raise ValueError(f"face index out of range [0, {V}): min {f.min()}, max {f.max()}")
     if not 0.0 <= config.min_component_area_fraction <= 1.0:
         raise ValueError(f"min_component_area_fraction must be in [0, 1], got {config.min_component_area_fraction}")
     face_src = np.arange(len(f), dtype=np.int64)

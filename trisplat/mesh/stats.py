@@ -5,6 +5,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from trisplat.mesh.arrays import mesh_arrays
 from trisplat.mesh.bvh import build_bvh, segment_any_hit
 from trisplat.mesh.cleanup import face_areas, face_components
 from trisplat.mesh.orient import edge_table
@@ -59,16 +60,8 @@ def self_intersecting_edges(vertices: np.ndarray, faces: np.ndarray, edges: np.n
 
 def mesh_statistics(vertices: np.ndarray, faces: np.ndarray, check_self_intersections: bool = True) -> MeshStats:
     """Statistics of the mesh (vertices [V,3], faces int [F,3])."""
-    v = np.asarray(vertices, dtype=np.float64)
-    f = np.asarray(faces)
-    if v.ndim != 2 or v.shape[1] != 3:
-        raise ValueError(f"vertices must be [V,3], got shape {v.shape}")
-    if f.ndim != 2 or f.shape[1] != 3:
-        raise ValueError(f"faces must be [F,3], got shape {f.shape}")
-    f = f.astype(np.int64)
+    v, f = mesh_arrays(vertices, faces)
     V, F = len(v), len(f)
-    if f.size and (f.min() < 0 or f.max() >= V):
-        raise ValueError(f"face index out of range [0, {V}): min {f.min()}, max {f.max()}")
     table = edge_table(f)
     E = len(table.edges)
     used = np.zeros(V, bool)
