@@ -1,4 +1,5 @@
 """Physics-ready exports: MuJoCo loads exported meshes as static collision geometry and a dropped sphere rests on them."""
+
 from __future__ import annotations
 
 import numpy as np

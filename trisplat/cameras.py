@@ -60,7 +60,7 @@ class Camera:
         """Unit viewing direction (camera +z) in world coordinates, [3]."""
         return self.world_to_camera[2, :3] / np.linalg.norm(self.world_to_camera[2, :3])
 
-    def scaled(self, factor: float) -> "Camera":
+    def scaled(self, factor: float) -> Camera:
         """The same camera for an image resized by `factor` (e.g. 0.5 halves width and height).
 
         With pixel centres at +0.5, a pixel edge maps to a pixel edge: K's focal and principal point scale by

@@ -6,7 +6,6 @@ import re
 
 import numpy as np
 import pytest
-import torch
 import trimesh
 from conftest import shared_data
 

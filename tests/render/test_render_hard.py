@@ -26,7 +26,7 @@ def brute_force(pos, faces, col, w2c, K, W, H):
         if area2 == 0:
             continue
         def sub(a, b):  # noqa: E306
-            return ((a[0] - xs) * (b[1] - ys) - (a[1] - ys) * (b[0] - xs)) / area2
+            return ((a[0] - xs) * (b[1] - ys) - (a[1] - ys) * (b[0] - xs)) / area2  # noqa: B023 - called within the iteration
         b = np.stack([sub(uv[1], uv[2]), sub(uv[2], uv[0]), sub(uv[0], uv[1])])
         inside = (b >= 0).all(0)
         z = 1.0 / (b / tri[:, 2][:, None, None]).sum(0)

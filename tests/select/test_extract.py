@@ -1,4 +1,5 @@
 """Object extraction from masks: IoU on the generated two-object scene, vote counting, hidden-face filling, splitting."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -22,8 +23,10 @@ def _segmenter_masks(mesh, label, cameras, obj=OBJECT, samples=4):
     flat = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
     white = np.where((label == obj)[:, None], 255, 0).astype(np.uint8)
     flat.visual = trimesh.visual.ColorVisuals(flat, face_colors=np.c_[white, white, white, np.full_like(white, 255)])
-    return {i: raycast_view(flat, c, background=(0, 0, 0), samples_per_pixel=samples).rgba[..., 0] >= 0.5
-            for i, c in enumerate(cameras)}
+    return {
+        i: raycast_view(flat, c, background=(0, 0, 0), samples_per_pixel=samples).rgba[..., 0] >= 0.5
+        for i, c in enumerate(cameras)
+    }
 
 
 def _available_renderers():
@@ -60,16 +63,16 @@ def test_extraction_survives_sloppy_masks(scene, error_px):
 def test_extraction_iou_on_two_object_scene(scene, renderer):
     mesh, label, cams, masks = scene
     truth = label == OBJECT
-    sel, votes = extract_faces(mesh.vertices, mesh.faces, cams, masks, ratio=0.5, renderer=renderer,
-                               return_votes=True)
+    sel, votes = extract_faces(mesh.vertices, mesh.faces, cams, masks, ratio=0.5, renderer=renderer, return_votes=True)
     iou = _iou(sel, truth)
     assert iou >= MIN_IOU, f"IoU {iou:.3f}"
     # the other object is never taken: its faces get (almost) no masked votes
     assert (sel & (label == 2)).sum() <= 2
     # every selected face was seen, and extracting the other object with its own masks gives the complement
     assert votes.seen[sel].all()
-    other = extract_faces(mesh.vertices, mesh.faces, cams, _segmenter_masks(mesh, label, cams, obj=2),
-                          renderer=renderer)
+    other = extract_faces(
+        mesh.vertices, mesh.faces, cams, _segmenter_masks(mesh, label, cams, obj=2), renderer=renderer
+    )
     assert _iou(other, label == 2) >= MIN_IOU
 
 

@@ -1,4 +1,5 @@
 """`trisplat extract`: end to end on a run made from the generated two-object scene, and precise errors for bad masks."""
+
 from __future__ import annotations
 
 import json
@@ -22,8 +23,18 @@ def run_dir(tmp_path_factory):
 
     root = tmp_path_factory.mktemp("extract")
     mesh, label = two_object_mesh()
-    data = write_blender_scene(root / "data", mesh, n_train=8, n_test=1, width=80, height=80, samples_per_pixel=1,
-                               seed=0, n_points=0, elevation_deg=(-60, 60))
+    data = write_blender_scene(
+        root / "data",
+        mesh,
+        n_train=8,
+        n_test=1,
+        width=80,
+        height=80,
+        samples_per_pixel=1,
+        seed=0,
+        n_points=0,
+        elevation_deg=(-60, 60),
+    )
     scene_data = load_dataset(data)
     N = scene_data.normalization
     pos_n = mesh.vertices @ N[:3, :3].T + N[:3, 3]

@@ -1,4 +1,5 @@
 """Viewer data and server: capture-frame cameras consistent with the mesh, packed mesh layout, routes, runs."""
+
 from __future__ import annotations
 
 import json
@@ -82,7 +83,9 @@ def test_server_routes_and_reports():
             with pytest.raises(urllib.error.HTTPError) as err:
                 urllib.request.urlopen(server.url + bad)
             assert err.value.code == 404, bad
-        req = urllib.request.Request(server.url + "api/report", data=b'{"kind": "error", "message": "boom"}', method="POST")
+        req = urllib.request.Request(
+            server.url + "api/report", data=b'{"kind": "error", "message": "boom"}', method="POST"
+        )
         urllib.request.urlopen(req).read()
         assert server.errors() == [{"kind": "error", "message": "boom"}]
     finally:
@@ -97,8 +100,9 @@ def test_run_view_undoes_the_normalisation_for_mesh_and_cameras(tmp_path):
     mesh = trimesh.creation.icosphere(subdivisions=2, radius=0.7)
     mesh.apply_translation([5.0, -2.0, 1.0])  # far from the origin, so the normalisation is not the identity
     mesh.visual.vertex_colors = np.tile([200, 60, 30, 255], (len(mesh.vertices), 1)).astype(np.uint8)
-    capture = write_blender_scene(tmp_path / "capture", mesh, n_train=3, n_test=1, width=32, height=32,
-                                  samples_per_pixel=1, n_points=0)
+    capture = write_blender_scene(
+        tmp_path / "capture", mesh, n_train=3, n_test=1, width=32, height=32, samples_per_pixel=1, n_points=0
+    )
     sd = load_dataset(capture)
     N = sd.normalization
     assert not np.allclose(N, np.eye(4))

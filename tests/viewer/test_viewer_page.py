@@ -1,5 +1,6 @@
 """The browser viewer in headless Chromium: loads without console errors and draws the mesh, frusta and photos
 where the cameras say they should be."""
+
 from __future__ import annotations
 
 import shutil
@@ -22,9 +23,19 @@ COLOR_TOLERANCE = 6  # 8-bit levels between a drawn pixel and the colour it shou
 CHROMIUM_TIMEOUT_S = 120
 READY_TIMEOUT_S = 30
 CHROMIUM_FLAGS = [
-    "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
-    "--disable-sync", "--no-first-run", "--hide-scrollbars", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
-    "--enable-logging=stderr", "--v=0", "--virtual-time-budget=15000",
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+    "--hide-scrollbars",
+    "--use-angle=swiftshader",
+    "--enable-unsafe-swiftshader",
+    "--enable-logging=stderr",
+    "--v=0",
+    "--virtual-time-budget=15000",
 ]
 
 
@@ -44,9 +55,17 @@ def _screenshot(data: ViewerData, query: str, size: tuple[int, int]) -> tuple[np
         with tempfile.TemporaryDirectory(prefix="trisplat-chromium-") as tmp:
             shot = Path(tmp) / "shot.png"
             proc = subprocess.run(
-                [chromium, *CHROMIUM_FLAGS, f"--user-data-dir={tmp}/profile", f"--window-size={size[0]},{size[1]}",
-                 f"--screenshot={shot}", server.url + "?" + query],
-                capture_output=True, text=True, timeout=CHROMIUM_TIMEOUT_S,
+                [
+                    chromium,
+                    *CHROMIUM_FLAGS,
+                    f"--user-data-dir={tmp}/profile",
+                    f"--window-size={size[0]},{size[1]}",
+                    f"--screenshot={shot}",
+                    server.url + "?" + query,
+                ],
+                capture_output=True,
+                text=True,
+                timeout=CHROMIUM_TIMEOUT_S,
             )
             assert shot.is_file(), f"chromium wrote no screenshot (rc {proc.returncode}): {proc.stderr[-2000:]}"
             image = np.asarray(Image.open(shot).convert("RGB")).astype(np.int16)
@@ -59,7 +78,9 @@ def _screenshot(data: ViewerData, query: str, size: tuple[int, int]) -> tuple[np
 
 def _assert_clean_load(server: ViewerServer, stderr: str) -> dict:
     assert server.errors() == [], f"the page reported errors: {server.errors()}"
-    bad = [line for line in stderr.splitlines() if "CONSOLE" in line and ("Uncaught" in line or "Failed to load" in line)]
+    bad = [
+        line for line in stderr.splitlines() if "CONSOLE" in line and ("Uncaught" in line or "Failed to load" in line)
+    ]
     assert bad == [], bad
     ready = next((r for r in server.reports if r.get("kind") == "ready"), None)
     assert ready is not None, f"the page never reported ready; reports: {server.reports}; stderr: {stderr[-1500:]}"
@@ -87,7 +108,9 @@ def _look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
 def test_mesh_file_view_shows_the_mesh_in_its_colour():
     sphere = trimesh.creation.icosphere(subdivisions=3)
     colour = np.array([0.9, 0.25, 0.1])
-    data = ViewerData(sphere.vertices * 3.0 + [100.0, -50.0, 7.0], sphere.faces, np.tile(colour, (len(sphere.vertices), 1)))
+    data = ViewerData(
+        sphere.vertices * 3.0 + [100.0, -50.0, 7.0], sphere.faces, np.tile(colour, (len(sphere.vertices), 1))
+    )
     image, server, stderr = _screenshot(data, "clean=1", (480, 360))
     ready = _assert_clean_load(server, stderr)
     assert ready["faces"] == len(sphere.faces) and ready["drawn_triangles"] == len(sphere.faces)
@@ -129,7 +152,9 @@ def test_snapped_camera_view_puts_the_mesh_where_the_camera_projects_it():
     drawn = _near(image, [round(0.1 * 255), round(0.8 * 255), round(0.3 * 255)])
     expected = np.zeros(drawn.shape, bool)  # pixel centres inside the projected rectangle
     xs, ys = np.arange(400) + 0.5, np.arange(300) + 0.5
-    expected[np.ix_((ys > uv[:, 1].min()) & (ys < uv[:, 1].max()), (xs > uv[:, 0].min()) & (xs < uv[:, 0].max()))] = True
+    expected[np.ix_((ys > uv[:, 1].min()) & (ys < uv[:, 1].max()), (xs > uv[:, 0].min()) & (xs < uv[:, 0].max()))] = (
+        True
+    )
     iou = (drawn & expected).sum() / (drawn | expected).sum()
     assert iou > 0.97, f"drawn quad overlaps its projection with IoU {iou:.3f}"
 

@@ -1,4 +1,5 @@
 """`trisplat bench train`: equal-wall-time training; quality of the opaque mesh (and its geometry where known)."""
+
 from __future__ import annotations
 
 import json
@@ -56,8 +57,9 @@ def spot_scene(args: TrainBenchArgs) -> Path:
     out = args.runs / f"spot_scene_{args.spot_size}"
     if not (out / "synth.json").exists():
         mesh = spot_mesh(args.data_root / "meshes" / "spot_triangulated.obj")
-        write_blender_scene(out, mesh, n_train=64, n_test=16, width=args.spot_size, height=args.spot_size,
-                            n_points=5000, progress=True)
+        write_blender_scene(
+            out, mesh, n_train=64, n_test=16, width=args.spot_size, height=args.spot_size, n_points=5000, progress=True
+        )
     return out
 
 
@@ -71,8 +73,15 @@ def geometry_columns(run_dir: Path, gt_mesh: Path) -> list:
     g = compare_surfaces(pred, load_surface(gt_mesh))
     s = mesh_statistics(pred.vertices, pred.faces, check_self_intersections=False)
     (run_dir / "geometry.json").write_text(json.dumps({"geometry": g.to_dict(), "mesh": s.to_dict()}, indent=2))
-    return [g.chamfer, g.chamfer_over_diagonal, g.fscore, s.vertex_face_ratio, s.boundary_edges,
-            s.non_manifold_edges, s.non_manifold_edge_fraction]
+    return [
+        g.chamfer,
+        g.chamfer_over_diagonal,
+        g.fscore,
+        s.vertex_face_ratio,
+        s.boundary_edges,
+        s.non_manifold_edges,
+        s.non_manifold_edge_fraction,
+    ]
 
 
 def main(argv: list[str]) -> int:
@@ -81,8 +90,21 @@ def main(argv: list[str]) -> int:
     from trisplat.run import open_run
 
     geo = "spot" in args.scenes
-    cols = ["scene", "preset", "budget min", "wall min", "steps", "faces", "vertices", "PSNR hard", "SSIM", "LPIPS",
-            "PSNR soft", "min opacity", "test PSNR @25/50/75% time"]
+    cols = [
+        "scene",
+        "preset",
+        "budget min",
+        "wall min",
+        "steps",
+        "faces",
+        "vertices",
+        "PSNR hard",
+        "SSIM",
+        "LPIPS",
+        "PSNR soft",
+        "min opacity",
+        "test PSNR @25/50/75% time",
+    ]
     if geo:
         cols += ["Chamfer", "Chamfer/diag", "F@1%", "V/F", "boundary edges", "non-manifold edges", "non-manifold frac"]
     table = BenchTable("train", cols)
@@ -98,16 +120,30 @@ def main(argv: list[str]) -> int:
             result = run_training(make_train_args(data, run_dir, preset, force=True, minutes=args.minutes, **opts))
             m = result.metrics
             hist = open_run(run_dir).history()
-            row = [name, preset, args.minutes, result.wall_s / 60, result.steps, m["faces"], m["vertices"],
-                   m.get("psnr"), m.get("ssim"), m.get("lpips"), m.get("soft_psnr"), m.get("min_vertex_opacity"),
-                   " ".join(_psnr_at_fractions(hist))]
+            row = [
+                name,
+                preset,
+                args.minutes,
+                result.wall_s / 60,
+                result.steps,
+                m["faces"],
+                m["vertices"],
+                m.get("psnr"),
+                m.get("ssim"),
+                m.get("lpips"),
+                m.get("soft_psnr"),
+                m.get("min_vertex_opacity"),
+                " ".join(_psnr_at_fractions(hist)),
+            ]
             if geo:
                 row += geometry_columns(run_dir, data / "gt_mesh.ply") if folder is None else [None] * 7
             table.add(*row)
             print(json.dumps(m, indent=1))
-    table.notes.append("PSNR/SSIM/LPIPS (AlexNet v0.1) of the final opaque mesh rendered by the z-buffer (hard mode) on "
-                       "the test split; soft = the splatting renderer at the final sigma. Chamfer = mean of accuracy "
-                       "and completeness (DTU style) against the true surface, 200k area-uniform samples, seed 0.")
+    table.notes.append(
+        "PSNR/SSIM/LPIPS (AlexNet v0.1) of the final opaque mesh rendered by the z-buffer (hard mode) on "
+        "the test split; soft = the splatting renderer at the final sigma. Chamfer = mean of accuracy "
+        "and completeness (DTU style) against the true surface, 200k area-uniform samples, seed 0."
+    )
     md = table.write(args.out, "trisplat bench train " + " ".join(argv))
     print(md.read_text())
     return 0

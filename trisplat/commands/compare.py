@@ -4,7 +4,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated
 
 import numpy as np
 import tyro
@@ -18,7 +18,7 @@ class CompareConfig:
     """reference image (PNG/JPEG/...)"""
     image_b: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="IMG_B")]
     """image to score against the reference, same size"""
-    lpips_weights: Optional[Path] = None
+    lpips_weights: Path | None = None
     """LPIPS .npz (default: $TRISPLAT_LPIPS_WEIGHTS, else ~/.cache/trisplat/lpips_alexnet_full_oihw.npz)"""
 
 

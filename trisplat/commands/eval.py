@@ -4,7 +4,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Literal, Optional
+from typing import Annotated, Literal
 
 import tyro
 
@@ -19,11 +19,11 @@ class EvalConfig:
     """which views to render"""
     mode: Literal["hard", "soft"] = "hard"
     """hard: the opaque mesh under a z-buffer (what exports show); soft: the training renderer at the run's sigma"""
-    out: Optional[Path] = None
+    out: Path | None = None
     """output folder (default RUN/eval_<split>, RUN/eval_<split>_soft in soft mode)"""
-    lpips_weights: Optional[Path] = None
+    lpips_weights: Path | None = None
     """LPIPS .npz (default: $TRISPLAT_LPIPS_WEIGHTS, else ~/.cache/trisplat/lpips_alexnet_full_oihw.npz)"""
-    max_views: Optional[int] = None
+    max_views: int | None = None
     """evaluate only the first N views of the split (a quick look)"""
     report: bool = True
     """write report.html (with pictures) next to metrics.json"""

@@ -4,7 +4,7 @@ from __future__ import annotations
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal, Optional
+from typing import Literal
 
 import tyro
 
@@ -24,10 +24,10 @@ class ExportConfig:
     """run folder written by `trisplat train`"""
     formats: tuple[Literal["ply", "obj", "glb", "model"], ...] = ("ply", "obj", "glb")
     """formats to write: ply (binary, per-vertex RGB), obj (+ mtl), glb (glTF 2.0, COLOR_0), model (SH PLY)"""
-    up: Optional[Literal["y", "z"]] = None
+    up: Literal["y", "z"] | None = None
     """rotate meshes so the capture's up (mean camera up vector) becomes +Y (glTF, Unity) or +Z (Blender, MuJoCo);
     default: keep the capture's own axes"""
-    out: Optional[Path] = None
+    out: Path | None = None
     """output folder (default: RUN/export)"""
     force: bool = False
     """replace files that already exist in the output folder"""

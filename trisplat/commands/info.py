@@ -1,4 +1,5 @@
 """`trisplat info PATH`: a readable summary of a capture (format, cameras, splits, points, bounds, warnings)."""
+
 from __future__ import annotations
 
 from collections import Counter
@@ -40,7 +41,9 @@ def describe(data) -> str:
     src = Counter(tuple(c.extras.get("source_size", (c.width, c.height))) for c in cams)
     lines.append("source      " + ", ".join(f"{w}x{h} x{n}" for (w, h), n in src.most_common()))
     f = np.array([[c.K[0, 0], c.K[1, 1]] for c in cams])
-    lines.append(f"focal       fx {f[:, 0].min():.1f}..{f[:, 0].max():.1f}  fy {f[:, 1].min():.1f}..{f[:, 1].max():.1f} px")
+    lines.append(
+        f"focal       fx {f[:, 0].min():.1f}..{f[:, 0].max():.1f}  fy {f[:, 1].min():.1f}..{f[:, 1].max():.1f} px"
+    )
     lines.append(f"split       {len(data.train_indices)} train, {len(data.test_indices)} test")
     if data.points is not None:
         lines.append(f"points      {len(data.points)}")
@@ -50,8 +53,10 @@ def describe(data) -> str:
         lines.append(f"depth       scale {cams[0].depth_scale:g} capture units per raw value")
     s = data.scale
     centre = -data.normalization[:3, 3] / s
-    lines.append(f"normalise   rule {data.options.get('normalize')}: scale {s:.6g} per capture unit, "
-                 f"capture centre {_fmt_vec(centre)}")
+    lines.append(
+        f"normalise   rule {data.options.get('normalize')}: scale {s:.6g} per capture unit, "
+        f"capture centre {_fmt_vec(centre)}"
+    )
     if data.bounds is not None:
         lines.append(f"bounds      {_fmt_vec(data.bounds[0])} .. {_fmt_vec(data.bounds[1])} (normalised)")
     lines.append(f"radius      cameras {data.scene_radius:.4g}, content {data.bounds_radius:.4g} (normalised)")
@@ -65,7 +70,6 @@ def main(argv: list[str]) -> int:
     cfg = tyro.cli(InfoConfig, args=argv, prog="trisplat info", description=__doc__)
     from trisplat.data import load_dataset
 
-    data = load_dataset(cfg.path, downscale=cfg.downscale, test_every=cfg.test_every, format=cfg.format,
-                        prepare="lazy")
+    data = load_dataset(cfg.path, downscale=cfg.downscale, test_every=cfg.test_every, format=cfg.format, prepare="lazy")
     print(describe(data))
     return 0

@@ -60,7 +60,7 @@ class SourceCamera:
             fx, fy, cx, cy = p[:4]
         return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
 
-    def with_size(self, width: int, height: int) -> "SourceCamera":
+    def with_size(self, width: int, height: int) -> SourceCamera:
         return SourceCamera(self.model, width, height, self.params)
 
 

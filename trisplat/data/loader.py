@@ -1,4 +1,5 @@
 """load_dataset: detect a capture's format, then normalise, undistort, downscale, cache and split it."""
+
 from __future__ import annotations
 
 import hashlib
@@ -248,8 +249,12 @@ def load_dataset(path, downscale: int = 1, **options) -> SceneData:
         if p.depth_target is not None and not p.depth_target.exists():
             make_depth(p)
 
-    todo = [i for i, p in enumerate(jobs) if (p.target != p.view.image_path and not p.target.exists())
-            or (p.depth_target is not None and not p.depth_target.exists())]
+    todo = [
+        i
+        for i, p in enumerate(jobs)
+        if (p.target != p.view.image_path and not p.target.exists())
+        or (p.depth_target is not None and not p.depth_target.exists())
+    ]
     if opts.prepare == "eager" and todo:
         undist = any(jobs[i].view.camera.needs_undistortion for i in todo)
         what = " + ".join(w for w, on in (("undistorting", undist), (f"downscaling x{d}", d > 1)) if on)
@@ -263,7 +268,9 @@ def load_dataset(path, downscale: int = 1, **options) -> SceneData:
         cam = cameras[i]
         img = read_image(cam.image_path)
         if (img.shape[1], img.shape[0]) != (cam.width, cam.height):
-            raise ValueError(f"{cam.image_path}: image is {img.shape[1]}x{img.shape[0]}, camera is {cam.width}x{cam.height}")
+            raise ValueError(
+                f"{cam.image_path}: image is {img.shape[1]}x{img.shape[0]}, camera is {cam.width}x{cam.height}"
+            )
         return to_float_rgb(img, background)
 
     def load_depth(i: int) -> np.ndarray:
@@ -273,7 +280,9 @@ def load_dataset(path, downscale: int = 1, **options) -> SceneData:
         cam = cameras[i]
         depth = read_depth_raw(cam.depth_path)
         if depth.shape != (cam.height, cam.width):
-            raise ValueError(f"{cam.depth_path}: depth is {depth.shape[1]}x{depth.shape[0]}, camera is {cam.width}x{cam.height}")
+            raise ValueError(
+                f"{cam.depth_path}: depth is {depth.shape[1]}x{depth.shape[0]}, camera is {cam.width}x{cam.height}"
+            )
         return (depth * (cam.depth_scale * s)).astype(np.float32)
 
     budget = opts.memory_budget_mb * 2**20

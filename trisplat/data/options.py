@@ -73,7 +73,7 @@ class LoadOptions:
             object.__setattr__(self, "cache_dir", str(self.cache_dir))
 
     @classmethod
-    def from_kwargs(cls, downscale: int = 1, **options) -> "LoadOptions":
+    def from_kwargs(cls, downscale: int = 1, **options) -> LoadOptions:
         known = {f.name for f in fields(cls)}
         unknown = sorted(set(options) - known)
         if unknown:

@@ -1,4 +1,5 @@
 """RGB-D readers: colour + depth folders with a Redwood .log trajectory (Open3D intrinsics) or TUM files."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -37,7 +38,9 @@ def read_redwood_log(path: Path) -> list[np.ndarray]:
     """Camera-to-world [4,4] matrices of a Redwood .log: per entry a line 'i j frame' then 4 matrix rows."""
     lines = [l.split() for l in path.read_text(errors="replace").splitlines() if l.strip()]
     if not lines or len(lines) % 5:
-        raise ValueError(f"{path}: malformed trajectory: expected blocks of 5 lines (header + 4x4), got {len(lines)} lines")
+        raise ValueError(
+            f"{path}: malformed trajectory: expected blocks of 5 lines (header + 4x4), got {len(lines)} lines"
+        )
     poses = []
     for b in range(0, len(lines), 5):
         try:
@@ -57,7 +60,9 @@ def read_open3d_intrinsics(path: Path) -> tuple[int, int, np.ndarray]:
         w, h = int(meta["width"]), int(meta["height"])
         K = np.asarray(meta["intrinsic_matrix"], dtype=np.float64).reshape(3, 3).T  # stored column-major
     except (KeyError, TypeError, ValueError):
-        raise ValueError(f"{path}: malformed intrinsics: need 'width', 'height' and 9 'intrinsic_matrix' values") from None
+        raise ValueError(
+            f"{path}: malformed intrinsics: need 'width', 'height' and 9 'intrinsic_matrix' values"
+        ) from None
     if not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
         raise ValueError(f"{path}: malformed intrinsics: focal lengths must be positive and finite")
     K = K.copy()
@@ -175,7 +180,9 @@ def read_rgbd(root: Path, depth_scale: float | None = None) -> RawCapture:
         if not colors:
             raise ValueError(f"{color_dir}: empty scene: no colour images")
         if len(colors) != len(depths):
-            raise ValueError(f"{root}: {len(colors)} colour images in {color_dir} but {len(depths)} depth images in {depth_dir}")
+            raise ValueError(
+                f"{root}: {len(colors)} colour images in {color_dir} but {len(depths)} depth images in {depth_dir}"
+            )
         if len(poses) != len(colors):
             raise ValueError(f"{logs[0]}: {len(poses)} poses for {len(colors)} colour images in {color_dir}")
         triples = list(zip(colors, depths, poses))
@@ -202,7 +209,9 @@ def depth_points(views: list[RawView], indices: np.ndarray) -> tuple[np.ndarray,
     """About POINTS_TARGET coloured points back-projected from the depth of up to POINTS_MAX_FRAMES views."""
     if len(indices) == 0:
         return np.zeros((0, 3)), np.zeros((0, 3), np.float32)
-    pick = indices[np.unique(np.linspace(0, len(indices) - 1, min(POINTS_MAX_FRAMES, len(indices))).round().astype(int))]
+    pick = indices[
+        np.unique(np.linspace(0, len(indices) - 1, min(POINTS_MAX_FRAMES, len(indices))).round().astype(int))
+    ]
     cam = views[pick[0]].camera
     per_frame = POINTS_TARGET / len(pick)
     stride = max(1, int(np.sqrt(cam.width * cam.height / per_frame)))
@@ -211,7 +220,9 @@ def depth_points(views: list[RawView], indices: np.ndarray) -> tuple[np.ndarray,
         v = views[i]
         d = read_depth_raw(v.depth_path) * v.depth_scale
         if d.shape != (v.camera.height, v.camera.width):
-            raise ValueError(f"{v.depth_path}: depth is {d.shape[1]}x{d.shape[0]} but the camera is {v.camera.width}x{v.camera.height}")
+            raise ValueError(
+                f"{v.depth_path}: depth is {d.shape[1]}x{d.shape[0]} but the camera is {v.camera.width}x{v.camera.height}"
+            )
         img = read_image(v.image_path)
         p, rc = backproject(d, v.camera.pinhole_K(), np.linalg.inv(v.world_to_camera), stride)
         pts.append(p)

@@ -1,4 +1,5 @@
 """Blender / NeRF-synthetic (transforms_{train,test}.json) and instant-ngp (transforms.json) readers."""
+
 from __future__ import annotations
 
 import json
@@ -101,7 +102,9 @@ def _camera(meta: dict, frame: dict, img: Path, path: Path, where: str) -> Sourc
     if model is None:
         model = "OPENCV_FISHEYE" if fisheye else "OPENCV"
     if model not in JSON_CAMERA_MODELS:
-        raise ValueError(f"{path}: {where}: unknown camera model {model!r} (supported: {', '.join(JSON_CAMERA_MODELS)})")
+        raise ValueError(
+            f"{path}: {where}: unknown camera model {model!r} (supported: {', '.join(JSON_CAMERA_MODELS)})"
+        )
     k = {key: (get(key) or 0.0) for key in ("k1", "k2", "k3", "k4", "p1", "p2")}
     if model in ("PINHOLE", "SIMPLE_PINHOLE") or not any(k.values()):
         return SourceCamera("PINHOLE", w, h, (fx, fy, cx, cy))

@@ -9,6 +9,7 @@ precision / recall = fraction of pred / gt samples within `threshold` of the oth
 Normal consistency = mean |n_pred . n_gt| over nearest pairs in both directions (orientation-agnostic; None when
 either side has no normals). Unlike the DTU script, no observation mask or outlier cut-off is applied.
 """
+
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
@@ -90,8 +91,9 @@ def sample_surface(surface: Surface, count: int, seed: int = DEFAULT_SEED) -> tu
     return v, normals
 
 
-def compare_surfaces(pred: Surface, gt: Surface, threshold: float | None = None, samples: int = DEFAULT_SAMPLES,
-                     seed: int = DEFAULT_SEED) -> GeometryMetrics:
+def compare_surfaces(
+    pred: Surface, gt: Surface, threshold: float | None = None, samples: int = DEFAULT_SAMPLES, seed: int = DEFAULT_SEED
+) -> GeometryMetrics:
     """Chamfer / F-score / normal consistency of `pred` against `gt` (see the module docstring).
     threshold: F-score distance in the surfaces' units; None = DEFAULT_THRESHOLD_FRACTION of the GT bbox diagonal."""
     diag = gt.bbox_diagonal()
@@ -108,14 +110,25 @@ def compare_surfaces(pred: Surface, gt: Surface, threshold: float | None = None,
     f = 2 * prec * rec / (prec + rec) if prec + rec > 0 else 0.0
     nc = None
     if pn is not None and gn is not None:
-        nc = 0.5 * (float(np.abs(np.einsum("ij,ij->i", pn, gn[i_pg])).mean())
-                    + float(np.abs(np.einsum("ij,ij->i", gn, pn[i_gp])).mean()))
+        nc = 0.5 * (
+            float(np.abs(np.einsum("ij,ij->i", pn, gn[i_pg])).mean())
+            + float(np.abs(np.einsum("ij,ij->i", gn, pn[i_gp])).mean())
+        )
     chamfer = 0.5 * (acc + comp)
     return GeometryMetrics(
-        accuracy=acc, completeness=comp, chamfer=chamfer, precision=prec, recall=rec, fscore=f,
-        threshold=float(threshold), normal_consistency=nc, gt_bbox_diagonal=diag,
+        accuracy=acc,
+        completeness=comp,
+        chamfer=chamfer,
+        precision=prec,
+        recall=rec,
+        fscore=f,
+        threshold=float(threshold),
+        normal_consistency=nc,
+        gt_bbox_diagonal=diag,
         chamfer_over_diagonal=chamfer / diag if diag > 0 else float("inf"),
-        num_pred_samples=len(p), num_gt_samples=len(g), seed=seed,
+        num_pred_samples=len(p),
+        num_gt_samples=len(g),
+        seed=seed,
     )
 
 

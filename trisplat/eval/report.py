@@ -10,7 +10,7 @@ import json
 import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -73,7 +73,7 @@ class SplitMetrics:
         }
 
     @staticmethod
-    def from_dict(d: dict) -> "SplitMetrics":
+    def from_dict(d: dict) -> SplitMetrics:
         views = [ViewMetrics(**{k: _from_json_float(v) for k, v in view.items()}) for view in d["views"]]
         known = {"split", "mode", "num_views", "psnr", "ssim", "lpips", "lpips_net", "lpips_note", "render_seconds",
                  "views"}  # fmt: skip

@@ -1,4 +1,5 @@
 """Export a trained run: plain-colour meshes (ply/obj/glb) and the full model PLY, in the capture's frame."""
+
 from __future__ import annotations
 
 import warnings
@@ -55,9 +56,13 @@ def export_run(
         try:
             capture_up = estimate_capture_up(run.load_scene_data().cameras)
         except (FileNotFoundError, ValueError) as exc:
-            warnings.warn(f"{run_dir}: cannot read the capture's cameras ({exc}); assuming the default up axis")
+            warnings.warn(
+                f"{run_dir}: cannot read the capture's cameras ({exc}); assuming the default up axis", stacklevel=2
+            )
         if capture_up is None:
-            warnings.warn(f"{run_dir}: the cameras do not agree on an up direction; assuming the default up axis")
+            warnings.warn(
+                f"{run_dir}: the cameras do not agree on an up direction; assuming the default up axis", stacklevel=2
+            )
     inverse = np.linalg.inv(np.asarray(normalization, dtype=np.float64))
     positions = scene.positions.detach().cpu().numpy()
     faces = scene.faces.detach().cpu().numpy()

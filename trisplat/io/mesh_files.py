@@ -1,4 +1,5 @@
 """Coloured triangle meshes on disk: .ply, .obj (+ .mtl) and .glb writers and readers, registered by suffix."""
+
 from __future__ import annotations
 
 import json
@@ -36,7 +37,10 @@ def _write_ply(path: Path, positions: np.ndarray, faces: np.ndarray, rgb8: np.nd
         vert["red"], vert["green"], vert["blue"] = rgb8.T
     face = np.empty(len(faces), dtype=[("vertex_indices", "<i4", (3,))])
     face["vertex_indices"] = faces
-    elements = [PlyElement.describe(vert, "vertex"), PlyElement.describe(face, "face", len_types={"vertex_indices": "u1"})]
+    elements = [
+        PlyElement.describe(vert, "vertex"),
+        PlyElement.describe(face, "face", len_types={"vertex_indices": "u1"}),
+    ]
     PlyData(elements, text=False, byte_order="<", comments=["trisplat mesh"]).write(str(path))
     return [path]
 

@@ -10,6 +10,7 @@ Positions are stored as doubles computed in float64 from the normalised frame, s
 re-applying the normalisation returns the float32 positions bit for bit (unless a coordinate is below ~1e-8 of
 the normalisation's translation, where the capture frame cannot hold it; the error there is ~1e-16 units).
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -76,7 +77,10 @@ def save_model_ply(path: str | Path, scene: TriangleScene, normalization: np.nda
         f"opacity_floor {float(scene.opacity_floor)!r}",
         "normalization " + " ".join(repr(float(v)) for v in N.reshape(-1)),
     ]
-    elements = [PlyElement.describe(vert, "vertex"), PlyElement.describe(face, "face", len_types={"vertex_indices": "u1"})]
+    elements = [
+        PlyElement.describe(vert, "vertex"),
+        PlyElement.describe(face, "face", len_types={"vertex_indices": "u1"}),
+    ]
     PlyData(elements, text=False, byte_order="<", comments=comments).write(str(path))
     return path
 

@@ -12,9 +12,11 @@ Degenerate input: exact duplicate points are left out (the first copy is used); 
 groups get one consistent triangulation (as a symbolic perturbation would) instead of rounding noise; co-spherical
 points are also handled by Qhull's point at infinity (`Qz`); a flat tetrahedron (coplanar points; |det| tiny or circumcentre beyond
 `HULL_RAY_LENGTH` diagonals) gets its Voronoi vertex that far along its plane normal, above its circumcircle, so
-exactly one of the two triangulations of its points is kept; coplanar input is triangulated in its plane (2D Delaunay) with dual edges crossing the plane;
-collinear input and fewer than 4 points give no faces; if Qhull still fails it is retried once with joggle (`QJ`).
+exactly one of the two triangulations of its points is kept; coplanar input is triangulated in its plane (2D
+Delaunay) with dual edges crossing the plane; collinear input and fewer than 4 points give no faces; if Qhull
+still fails it is retried once with joggle (`QJ`).
 """
+
 from __future__ import annotations
 
 import time
@@ -34,7 +36,6 @@ FLAT_RATIO = 1e-9  # smallest / largest singular value of the centred points bel
 JITTER = 1e-7  # bounding-box diagonals: amplitude of the uniform jitter applied (for the triangulation only)
 JITTER_SEED = 0
 FLAT_TET_EPS = 1e-12  # |det| / (|u| |v| |w|) below which a tetrahedron counts as flat (dimensionless)
-
 
 
 @dataclass
@@ -146,8 +147,9 @@ def _hint_normals(soup_tri: np.ndarray, hit: np.ndarray) -> np.ndarray:
     return np.cross(soup_tri[hit, 1] - soup_tri[hit, 0], soup_tri[hit, 2] - soup_tri[hit, 0])
 
 
-def restricted_delaunay(vertices: np.ndarray, soup_vertices: np.ndarray, soup_faces: np.ndarray,
-                        report: RDTReport | None = None) -> np.ndarray:
+def restricted_delaunay(
+    vertices: np.ndarray, soup_vertices: np.ndarray, soup_faces: np.ndarray, report: RDTReport | None = None
+) -> np.ndarray:
     """Faces int32 [F,3] (indices into `vertices` [V,3]) of the Delaunay triangulation of `vertices` restricted to the
     triangle soup (`soup_vertices` [S,3], `soup_faces` [G,3]); consistently oriented, outward on closed pieces.
 
@@ -238,8 +240,10 @@ def _spatial_dual(v: np.ndarray, ray_len: float, rep: RDTReport, t_start: float)
     cc, flat = _circumcentres(v, simplices, FLAT_TET_EPS, ray_len)
     rep.num_flat_tets = int(flat.sum())
     if rep.num_flat_tets:
-        rep.notes.append(f"{rep.num_flat_tets} flat tetrahedra (coplanar points): Voronoi vertex put "
-                         f"{HULL_RAY_LENGTH} bounding-box diagonals along their plane normal")
+        rep.notes.append(
+            f"{rep.num_flat_tets} flat tetrahedra (coplanar points): Voronoi vertex put "
+            f"{HULL_RAY_LENGTH} bounding-box diagonals along their plane normal"
+        )
     in_tet = np.zeros(len(v), bool)
     in_tet[simplices.reshape(-1)] = True
     n_unused = len(v) - int(in_tet.sum())

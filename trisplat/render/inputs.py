@@ -1,4 +1,5 @@
 """Validation and normalisation of rasterize() inputs: shapes, dtypes, finiteness, index ranges, image sizes."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
@@ -82,18 +83,24 @@ def make_options(options: dict) -> RenderOptions:
     if not (0 < opts.near < opts.far):
         raise ValueError(f"need 0 < near < far, got near={opts.near}, far={opts.far}")
     if not (0 < opts.alpha_max <= 1 and 0 <= opts.alpha_min < opts.alpha_max and 0 <= opts.transmittance_min < 1):
-        raise ValueError(f"bad alpha thresholds: alpha_max={opts.alpha_max}, alpha_min={opts.alpha_min}, "
-                         f"transmittance_min={opts.transmittance_min}")
+        raise ValueError(
+            f"bad alpha thresholds: alpha_max={opts.alpha_max}, alpha_min={opts.alpha_min}, "
+            f"transmittance_min={opts.transmittance_min}"
+        )
     return opts
 
 
 def check_image_size(width, height) -> tuple[int, int]:
-    if isinstance(width, bool) or isinstance(height, bool) or not (
-        isinstance(width, (int, np.integer)) and isinstance(height, (int, np.integer))
+    if (
+        isinstance(width, bool)
+        or isinstance(height, bool)
+        or not (isinstance(width, (int, np.integer)) and isinstance(height, (int, np.integer)))
     ):
         raise ValueError(f"width and height must be ints, got {width!r} x {height!r}")
     if not (1 <= width <= MAX_IMAGE_SIDE_PX and 1 <= height <= MAX_IMAGE_SIDE_PX):
-        raise ValueError(f"image size {width}x{height} is empty or absurd (each side must be in 1..{MAX_IMAGE_SIDE_PX})")
+        raise ValueError(
+            f"image size {width}x{height} is empty or absurd (each side must be in 1..{MAX_IMAGE_SIDE_PX})"
+        )
     return int(width), int(height)
 
 
@@ -146,8 +153,10 @@ def validate(positions, faces, colors, opacities, sigma, world_to_camera, K, wid
     col = _as_tensor(colors, "colors", dev)
     if not col.is_floating_point():
         raise ValueError(f"colors must be a float tensor, got dtype {col.dtype}")
-    if not ((col.ndim == 2 and col.shape == (V, 3)) or (col.ndim == 3 and col.shape[0] == V and col.shape[2] == 3
-                                                        and col.shape[1] in (1, 4, 9, 16))):
+    if not (
+        (col.ndim == 2 and col.shape == (V, 3))
+        or (col.ndim == 3 and col.shape[0] == V and col.shape[2] == 3 and col.shape[1] in (1, 4, 9, 16))
+    ):
         raise ValueError(f"colors must be [V,3] RGB or [V,(d+1)^2,3] SH with V={V}, got {tuple(col.shape)}")
     if scan(col, bounds=False)[0]:
         raise ValueError("colors hold NaN or Inf")

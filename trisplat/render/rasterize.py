@@ -1,4 +1,5 @@
 """The public soft rasterizer: rasterize(...) -> RenderOutput; SH, batching, supersampling, backend dispatch."""
+
 from __future__ import annotations
 
 import torch
@@ -38,15 +39,21 @@ def _render_view(positions, faces, colors, opacities, sigma, w2c, K, width, heig
         out = render_numba(positions, faces, colors, opacities, sigma, w2c, K, W, H, bg, opts)
     if s > 1:
         out = RenderOutput(
-            rgb=_pool(out.rgb, s), alpha=_pool(out.alpha[..., None], s)[..., 0], depth=_pool(out.depth[..., None], s)[..., 0],
-            normal=_pool(out.normal, s), max_weight=out.max_weight,
-            face_id=out.face_id[s // 2::s, s // 2::s].contiguous(),
-            pairs_evaluated=out.pairs_evaluated, faces_visible=out.faces_visible)
+            rgb=_pool(out.rgb, s),
+            alpha=_pool(out.alpha[..., None], s)[..., 0],
+            depth=_pool(out.depth[..., None], s)[..., 0],
+            normal=_pool(out.normal, s),
+            max_weight=out.max_weight,
+            face_id=out.face_id[s // 2 :: s, s // 2 :: s].contiguous(),
+            pairs_evaluated=out.pairs_evaluated,
+            faces_visible=out.faces_visible,
+        )
     return out
 
 
-def rasterize(positions, faces, colors, opacities, sigma, world_to_camera, K, width, height, background=None,
-              **options) -> RenderOutput:
+def rasterize(
+    positions, faces, colors, opacities, sigma, world_to_camera, K, width, height, background=None, **options
+) -> RenderOutput:
     """Render triangles softly (Triangle Splatting+ window, front-to-back alpha compositing). Differentiable.
 
     positions float [V,3] world; faces int [F,3]; colors [V,3] RGB or [V,(d+1)^2,3] SH (evaluated per vertex with the
@@ -63,17 +70,33 @@ def rasterize(positions, faces, colors, opacities, sigma, world_to_camera, K, wi
     opts = make_options(options)
     vi = validate(positions, faces, colors, opacities, sigma, world_to_camera, K, width, height, background)
     outs = [
-        _render_view(vi.positions, vi.faces, vi.colors, vi.opacities, vi.sigma, vi.world_to_camera[b], vi.K[b],
-                     vi.width, vi.height, vi.background, opts)
+        _render_view(
+            vi.positions,
+            vi.faces,
+            vi.colors,
+            vi.opacities,
+            vi.sigma,
+            vi.world_to_camera[b],
+            vi.K[b],
+            vi.width,
+            vi.height,
+            vi.background,
+            opts,
+        )
         for b in range(vi.world_to_camera.shape[0])
     ]
     if not vi.batched:
         return outs[0]
     return RenderOutput(
-        rgb=torch.stack([o.rgb for o in outs]), alpha=torch.stack([o.alpha for o in outs]),
-        depth=torch.stack([o.depth for o in outs]), normal=torch.stack([o.normal for o in outs]),
-        max_weight=torch.stack([o.max_weight for o in outs]), face_id=torch.stack([o.face_id for o in outs]),
-        pairs_evaluated=sum(o.pairs_evaluated for o in outs), faces_visible=sum(o.faces_visible for o in outs))
+        rgb=torch.stack([o.rgb for o in outs]),
+        alpha=torch.stack([o.alpha for o in outs]),
+        depth=torch.stack([o.depth for o in outs]),
+        normal=torch.stack([o.normal for o in outs]),
+        max_weight=torch.stack([o.max_weight for o in outs]),
+        face_id=torch.stack([o.face_id for o in outs]),
+        pairs_evaluated=sum(o.pairs_evaluated for o in outs),
+        faces_visible=sum(o.faces_visible for o in outs),
+    )
 
 
 __all__ = ["rasterize", "camera_center"]

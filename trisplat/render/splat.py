@@ -1,4 +1,5 @@
 """Soft rendering of one view with the Numba kernels, wired into torch autograd (the wiring only; maths in kernels.py)."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -36,8 +37,9 @@ def _np32(t: torch.Tensor) -> np.ndarray:
     return np.ascontiguousarray(t.detach().to(torch.float32).cpu().numpy())
 
 
-def forward_numba(positions, faces, vertex_rgb, opacities, sigma, world_to_camera, K, width, height, background,
-                  opts: RenderOptions):
+def forward_numba(
+    positions, faces, vertex_rgb, opacities, sigma, world_to_camera, K, width, height, background, opts: RenderOptions
+):
     """Run setup, binning and the forward tile kernel. Returns (images tuple, max_weight, face_id, counters, bins)."""
     pos = _np32(positions)
     fc = np.ascontiguousarray(faces.detach().cpu().numpy(), dtype=np.int32)
@@ -51,14 +53,33 @@ def forward_numba(positions, faces, vertex_rgb, opacities, sigma, world_to_camer
     key = np.zeros(F, np.float32)
     argmin = np.zeros(F, np.int8)
     ntiles = np.zeros(F, np.int64)
-    kn.setup_faces(pos, fc, w2c, Kn, rgb_v, op_v, opts.opacity_mode == "min", float(opts.near), float(opts.far),
-                   float(opts.min_area_px), float(opts.grazing_cos), width, height, tile, theta, rect, key, argmin,
-                   ntiles)
+    kn.setup_faces(
+        pos,
+        fc,
+        w2c,
+        Kn,
+        rgb_v,
+        op_v,
+        opts.opacity_mode == "min",
+        float(opts.near),
+        float(opts.far),
+        float(opts.min_area_px),
+        float(opts.grazing_cos),
+        width,
+        height,
+        tile,
+        theta,
+        rect,
+        key,
+        argmin,
+        ntiles,
+    )
     # Front-to-back face order: a stable sort of the depth keys (positive float32 depths order like their int32
     # bits, which numpy sorts by radix); culled faces (key 0, no tiles) sort first and are skipped by the binning.
     order = np.argsort(key.view(np.int32), kind="stable").astype(np.int32)
-    face_start, pair_face, tile_start, tile_pairs, pos_of = kn.bin_faces(theta, rect, ntiles, order, width, height,
-                                                                         tile)
+    face_start, pair_face, tile_start, tile_pairs, pos_of = kn.bin_faces(
+        theta, rect, ntiles, order, width, height, tile
+    )
     rgb = np.empty((height, width, 3), np.float32)
     alpha = np.empty((height, width), np.float32)
     depth = np.empty((height, width), np.float32)
@@ -66,12 +87,46 @@ def forward_numba(positions, faces, vertex_rgb, opacities, sigma, world_to_camer
     face_id = np.empty((height, width), np.int64)
     pair_weight = np.zeros(pair_face.shape[0], np.float32)
     evals = np.zeros(tile_start.shape[0] - 1, np.int64)
-    kn.raster_forward(theta, rect, pair_face, tile_start, tile_pairs, width, height, tile, float(sigma),
-                      float(opts.alpha_min), float(opts.alpha_max), float(opts.transmittance_min),
-                      bool(opts.perspective_correct), bg, rgb, alpha, depth, normal, face_id, pair_weight, evals)
+    kn.raster_forward(
+        theta,
+        rect,
+        pair_face,
+        tile_start,
+        tile_pairs,
+        width,
+        height,
+        tile,
+        float(sigma),
+        float(opts.alpha_min),
+        float(opts.alpha_max),
+        float(opts.transmittance_min),
+        bool(opts.perspective_correct),
+        bg,
+        rgb,
+        alpha,
+        depth,
+        normal,
+        face_id,
+        pair_weight,
+        evals,
+    )
     max_weight = kn.reduce_max_weight(pair_weight, face_start, pos_of)
-    bins = _Bins(pos, fc, w2c, Kn, theta, rect, argmin, face_start, pair_face, tile_start, tile_pairs, pos_of,
-                 (rgb, alpha, depth, normal), bg)
+    bins = _Bins(
+        pos,
+        fc,
+        w2c,
+        Kn,
+        theta,
+        rect,
+        argmin,
+        face_start,
+        pair_face,
+        tile_start,
+        tile_pairs,
+        pos_of,
+        (rgb, alpha, depth, normal),
+        bg,
+    )
     return (rgb, alpha, depth, normal), max_weight, face_id, int(evals.sum()), int((ntiles > 0).sum()), bins
 
 
@@ -80,10 +135,31 @@ def backward_numba(bins: _Bins, sigma, width, height, opts: RenderOptions, g_rgb
     rgb, alpha, depth, normal = bins.images
     P = bins.pair_face.shape[0]
     pair_grad = np.zeros((P, kn.N_THETA), np.float32)  # pairs after a tile saturates stay zero
-    kn.raster_backward(bins.theta, bins.rect, bins.pair_face, bins.tile_start, bins.tile_pairs, width, height,
-                       int(opts.tile_size), float(sigma), float(opts.alpha_min), float(opts.alpha_max),
-                       float(opts.transmittance_min), bool(opts.perspective_correct), bins.bg, rgb, alpha, depth,
-                       normal, g_rgb, g_alpha, g_depth, g_normal, pair_grad)
+    kn.raster_backward(
+        bins.theta,
+        bins.rect,
+        bins.pair_face,
+        bins.tile_start,
+        bins.tile_pairs,
+        width,
+        height,
+        int(opts.tile_size),
+        float(sigma),
+        float(opts.alpha_min),
+        float(opts.alpha_max),
+        float(opts.transmittance_min),
+        bool(opts.perspective_correct),
+        bins.bg,
+        rgb,
+        alpha,
+        depth,
+        normal,
+        g_rgb,
+        g_alpha,
+        g_depth,
+        g_normal,
+        pair_grad,
+    )
     F = bins.faces.shape[0]
     V = bins.pos.shape[0]
     g_pos = np.zeros((V, 3), np.float32)
@@ -95,8 +171,20 @@ def backward_numba(bins: _Bins, sigma, width, height, opts: RenderOptions, g_rgb
     g_op_f = np.empty((n, 3), np.float32)
     for f0 in range(0, F, BACKWARD_FACE_CHUNK):  # chunks keep the per-face-vertex buffers small
         m = min(F, f0 + BACKWARD_FACE_CHUNK) - f0
-        kn.setup_backward(bins.pos, bins.faces, bins.w2c, bins.K, bins.argmin, pair_grad, bins.pos_of,
-                          bins.face_start, f0, g_pos_f[:m], g_rgb_f[:m], g_op_f[:m])
+        kn.setup_backward(
+            bins.pos,
+            bins.faces,
+            bins.w2c,
+            bins.K,
+            bins.argmin,
+            pair_grad,
+            bins.pos_of,
+            bins.face_start,
+            f0,
+            g_pos_f[:m],
+            g_rgb_f[:m],
+            g_op_f[:m],
+        )
         kn.scatter_vertices(bins.faces, f0, g_pos_f[:m], g_rgb_f[:m], g_op_f[:m], g_pos, g_rgbv, g_op)
     return g_pos, g_rgbv, g_op
 
@@ -107,30 +195,54 @@ class _SoftRasterize(torch.autograd.Function):
     @staticmethod
     def forward(ctx, positions, vertex_rgb, opacities, faces, sigma, w2c, K, width, height, background, opts, extra):
         images, max_weight, face_id, evals, visible, bins = forward_numba(
-            positions, faces, vertex_rgb, opacities, sigma, w2c, K, width, height, background, opts)
+            positions, faces, vertex_rgb, opacities, sigma, w2c, K, width, height, background, opts
+        )
         ctx.bins, ctx.sigma, ctx.size, ctx.opts = bins, sigma, (width, height), opts
         ctx.dtypes = (positions.dtype, vertex_rgb.dtype, opacities.dtype)
-        extra.update(max_weight=torch.from_numpy(max_weight), face_id=torch.from_numpy(face_id), evals=evals,
-                     visible=visible)
+        extra.update(
+            max_weight=torch.from_numpy(max_weight), face_id=torch.from_numpy(face_id), evals=evals, visible=visible
+        )
         dt = positions.dtype
         return tuple(torch.from_numpy(x).to(dt) for x in images)
 
     @staticmethod
     def backward(ctx, g_rgb, g_alpha, g_depth, g_normal):
         w, h = ctx.size
-        g_pos, g_col, g_op = backward_numba(ctx.bins, ctx.sigma, w, h, ctx.opts, _np32(g_rgb), _np32(g_alpha),
-                                            _np32(g_depth), _np32(g_normal))
+        g_pos, g_col, g_op = backward_numba(
+            ctx.bins, ctx.sigma, w, h, ctx.opts, _np32(g_rgb), _np32(g_alpha), _np32(g_depth), _np32(g_normal)
+        )
         dp, dc, do = ctx.dtypes
-        return (torch.from_numpy(g_pos).to(dp), torch.from_numpy(g_col).to(dc), torch.from_numpy(g_op).to(do),
-                None, None, None, None, None, None, None, None, None)
+        return (
+            torch.from_numpy(g_pos).to(dp),
+            torch.from_numpy(g_col).to(dc),
+            torch.from_numpy(g_op).to(do),
+            None,
+            None,
+            None,
+            None,
+            None,
+            None,
+            None,
+            None,
+            None,
+        )
 
 
-def render_numba(positions, faces, vertex_rgb, opacities, sigma, world_to_camera, K, width, height, background,
-                 opts: RenderOptions) -> RenderOutput:
+def render_numba(
+    positions, faces, vertex_rgb, opacities, sigma, world_to_camera, K, width, height, background, opts: RenderOptions
+) -> RenderOutput:
     """One view with the Numba kernels; same contract as trisplat.render.reference.render_reference."""
     extra: dict = {}
-    rgb, alpha, depth, normal = _SoftRasterize.apply(positions, vertex_rgb, opacities, faces, sigma, world_to_camera,
-                                                     K, width, height, background, opts, extra)
-    return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, normal=normal,
-                        max_weight=extra["max_weight"].to(positions.dtype), face_id=extra["face_id"],
-                        pairs_evaluated=extra["evals"], faces_visible=extra["visible"])
+    rgb, alpha, depth, normal = _SoftRasterize.apply(
+        positions, vertex_rgb, opacities, faces, sigma, world_to_camera, K, width, height, background, opts, extra
+    )
+    return RenderOutput(
+        rgb=rgb,
+        alpha=alpha,
+        depth=depth,
+        normal=normal,
+        max_weight=extra["max_weight"].to(positions.dtype),
+        face_id=extra["face_id"],
+        pairs_evaluated=extra["evals"],
+        faces_visible=extra["visible"],
+    )

@@ -1,10 +1,10 @@
 """Initial triangles from a capture: Delaunay faces of the sparse points, a per-point soup, or random soup."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
 import numpy as np
-import torch
 
 from trisplat.scene.model import TriangleScene
 
@@ -143,7 +143,9 @@ def init_delaunay(
         remap = np.full(len(pts), -1, dtype=np.int64)
         remap[used] = np.arange(len(used))
         faces, pts, cols = remap[faces], pts[used], cols[used]
-    scene = TriangleScene.from_rgb(pts.astype(np.float32), faces.astype(np.int32), cols.astype(np.float32), opacity, sh_degree)
+    scene = TriangleScene.from_rgb(
+        pts.astype(np.float32), faces.astype(np.int32), cols.astype(np.float32), opacity, sh_degree
+    )
     report.vertices, report.faces = scene.num_vertices, scene.num_faces
     return scene, report
 
@@ -202,7 +204,11 @@ def init_soup(
     verts = pts[:, None, :] + soup_sizes(pts, size_factor)[:, None, None] * np.einsum("nij,kj->nki", R, template)
     faces = np.arange(3 * n, dtype=np.int32).reshape(n, 3)
     scene = TriangleScene.from_rgb(
-        verts.reshape(-1, 3).astype(np.float32), faces, np.repeat(cols, 3, axis=0).astype(np.float32), opacity, sh_degree
+        verts.reshape(-1, 3).astype(np.float32),
+        faces,
+        np.repeat(cols, 3, axis=0).astype(np.float32),
+        opacity,
+        sh_degree,
     )
     report.vertices, report.faces = scene.num_vertices, scene.num_faces
     return scene, report
@@ -256,8 +262,9 @@ def initial_scene(
     if method == "delaunay":
         return init_delaunay(data.points, data.point_colors, opacity, sh_degree, max_points, seed)
     if method == "soup":
-        return init_soup(data.points, data.point_colors, seed=seed, opacity=opacity, sh_degree=sh_degree,
-                         max_points=max_points)
+        return init_soup(
+            data.points, data.point_colors, seed=seed, opacity=opacity, sh_degree=sh_degree, max_points=max_points
+        )
     bounds = data.bounds
     if bounds is None:
         c = np.stack([cam.center for cam in data.cameras])

@@ -57,7 +57,7 @@ class TriangleScene:
         """View-independent RGB [V,3] from the DC term (what plain-colour exports carry)."""
         return sh_dc_to_rgb(self.sh[:, 0, :]).clamp(max=1.0)
 
-    def detached(self) -> "TriangleScene":
+    def detached(self) -> TriangleScene:
         return replace(
             self,
             positions=self.positions.detach().clone(),
@@ -67,7 +67,7 @@ class TriangleScene:
         )
 
     @staticmethod
-    def from_rgb(positions, faces, rgb, opacity: float = 0.5, sh_degree: int = 0) -> "TriangleScene":
+    def from_rgb(positions, faces, rgb, opacity: float = 0.5, sh_degree: int = 0) -> TriangleScene:
         """A scene with constant vertex opacity and colour `rgb` [V,3] in the DC band (higher bands zero)."""
         from trisplat.scene.sh import rgb_to_sh_dc
 

@@ -7,6 +7,7 @@ shows (hidden, behind the object, outside every mask view) stay unselected unles
 adds every connected patch of unseen faces whose seen neighbours are mostly selected (e.g. the hidden underside
 of an object).
 """
+
 from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
@@ -100,18 +101,39 @@ def face_id_maps(
         from trisplat.render import rasterize_hard
 
         for cam in cameras:
-            out = rasterize_hard(pos, fac, colors, torch.as_tensor(cam.world_to_camera, dtype=torch.float32),
-                                 torch.as_tensor(cam.K, dtype=torch.float32), cam.width, cam.height)
+            out = rasterize_hard(
+                pos,
+                fac,
+                colors,
+                torch.as_tensor(cam.world_to_camera, dtype=torch.float32),
+                torch.as_tensor(cam.K, dtype=torch.float32),
+                cam.width,
+                cam.height,
+            )
             yield out.face_id.detach().cpu().numpy().astype(np.int64)
         return
     from trisplat.render import rasterize
 
-    op = torch.ones(len(pos)) if opacities is None else torch.as_tensor(
-        opacities.detach().cpu() if hasattr(opacities, "detach") else opacities, dtype=torch.float32)
+    op = (
+        torch.ones(len(pos))
+        if opacities is None
+        else torch.as_tensor(
+            opacities.detach().cpu() if hasattr(opacities, "detach") else opacities, dtype=torch.float32
+        )
+    )
     with torch.no_grad():
         for cam in cameras:
-            out = rasterize(pos, fac, colors, op, float(sigma), torch.as_tensor(cam.world_to_camera, dtype=torch.float32),
-                            torch.as_tensor(cam.K, dtype=torch.float32), cam.width, cam.height)
+            out = rasterize(
+                pos,
+                fac,
+                colors,
+                op,
+                float(sigma),
+                torch.as_tensor(cam.world_to_camera, dtype=torch.float32),
+                torch.as_tensor(cam.K, dtype=torch.float32),
+                cam.width,
+                cam.height,
+            )
             yield out.face_id.cpu().numpy().astype(np.int64)
 
 
@@ -126,8 +148,9 @@ def count_votes(face_ids: Sequence[np.ndarray], masks: Sequence[np.ndarray], num
         fid = np.asarray(fid)
         m = np.asarray(m, dtype=bool)
         if fid.shape != m.shape:
-            raise ValueError(f"view {i}: mask is {m.shape[1]}x{m.shape[0]} pixels but the render is "
-                             f"{fid.shape[1]}x{fid.shape[0]}")
+            raise ValueError(
+                f"view {i}: mask is {m.shape[1]}x{m.shape[0]} pixels but the render is {fid.shape[1]}x{fid.shape[0]}"
+            )
         hit = fid >= 0
         if hit.any() and fid[hit].max() >= num_faces:
             raise ValueError(f"view {i}: face id {int(fid[hit].max())} out of range for {num_faces} faces")
@@ -202,8 +225,10 @@ def extract_faces(
             raise ValueError(f"mask for camera index {i}, but there are {len(cameras)} cameras")
         cam, m = cameras[i], np.asarray(masks[i])
         if m.shape != (cam.height, cam.width):
-            raise ValueError(f"mask for camera {i} ({cam.name or cam.image_path}) is {m.shape[1]}x{m.shape[0]} "
-                             f"pixels, its image is {cam.width}x{cam.height}")
+            raise ValueError(
+                f"mask for camera {i} ({cam.name or cam.image_path}) is {m.shape[1]}x{m.shape[0]} "
+                f"pixels, its image is {cam.width}x{cam.height}"
+            )
     views = [cameras[i] for i in idx]
     ids = list(face_id_maps(positions, faces, views, renderer, opacities=opacities, sigma=sigma))
     votes = count_votes(ids, [np.asarray(masks[i], bool) for i in idx], len(faces))

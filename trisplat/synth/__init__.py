@@ -1,4 +1,5 @@
 """Synthetic scenes with known truth: procedural meshes, orbit cameras, an independent ray-cast renderer, Blender-format writer."""
+
 from trisplat.synth.blender import write_blender_scene
 from trisplat.synth.orbit import look_at, orbit_cameras
 from trisplat.synth.raycast import RayCastView, Shading, raycast_view, render_face_ids, render_views

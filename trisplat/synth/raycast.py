@@ -4,6 +4,7 @@ It shares no code with trisplat.render, so images it makes can judge that render
 in OpenCV axes (docs/conventions.md). With `samples_per_pixel = s`, each pixel is the box-filtered mean of an s x s
 grid of sub-pixel rays (stratified; `jitter=True` moves each ray randomly inside its stratum).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass

@@ -1,4 +1,5 @@
 """Unlit surface colour of a trimesh at surface points: vertex colours, face colours, or a UV texture."""
+
 from __future__ import annotations
 
 import weakref

@@ -150,7 +150,7 @@ def viewer_data_from_run(run_dir: str | Path) -> ViewerData:
     try:
         data = run.load_scene_data()
     except (FileNotFoundError, ValueError, KeyError) as exc:
-        warnings.warn(f"{run_dir}: showing the mesh without cameras: cannot read the capture ({exc})")
+        warnings.warn(f"{run_dir}: showing the mesh without cameras: cannot read the capture ({exc})", stacklevel=2)
     else:
         train = [int(i) for i in data.train_indices]
         cameras = rigid_cameras_in_capture_frame([data.cameras[i] for i in train], data.normalization)
