@@ -1,1 +1,1 @@
-"""commands"""
+"""CLI subcommands: one module per `trisplat` command, each exposing main(argv) -> int."""

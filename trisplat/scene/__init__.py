@@ -1,1 +1,1 @@
-"""scene"""
+"""The triangle table being optimised (TriangleScene), spherical harmonics, and initial triangles."""

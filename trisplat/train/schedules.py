@@ -62,15 +62,6 @@ def prune_threshold(p: float, cfg: TrainConfig) -> float:
     return cfg.prune_threshold_start + cfg.prune_threshold_step * k
 
 
-def event_due(step: int, total: int, begin: float, end: float, interval: float, min_steps: int = 1) -> bool:
-    """True at the steps where a periodic event (every `interval` of progress, at least `min_steps` steps apart,
-    from `begin` up to `end`) fires."""
-    every = max(int(round(interval * total)), min_steps, 1)
-    start = int(round(begin * total))
-    stop = int(round(end * total))
-    return start <= step < stop and step > 0 and (step - start) % every == 0
-
-
 def crossed(p_prev: float, p: float, begin: float, end: float, interval: float) -> bool:
     """True when progress moving from p_prev to p crosses an event boundary begin + k * interval (< end)."""
     if p < begin or p >= end:
