@@ -27,7 +27,8 @@ class RenderArgs:
 def render_split(args: RenderArgs) -> list[Path]:
     from trisplat.eval.views import render_view, soft_sigma
     from trisplat.run import open_run
-    from trisplat.train.outputs import image_stem, to_png
+    from trisplat.eval.report import write_png
+    from trisplat.train.outputs import image_stem
 
     run = open_run(args.run)
     scene, _ = run.load_model()
@@ -41,7 +42,7 @@ def render_split(args: RenderArgs) -> list[Path]:
         path = args.out / f"{image_stem(cam, int(i))}.png"
         if path.exists() and not args.force:
             raise FileExistsError(f"{path} exists; pass --force to overwrite")
-        to_png(render_view(scene, cam, args.mode, data.background, sigma), path)
+        write_png(render_view(scene, cam, args.mode, data.background, sigma), path)
         written.append(path)
     return written
 

@@ -141,6 +141,13 @@ def _save_png(arr: np.ndarray, path: Path) -> None:
     Image.fromarray(arr).save(path)
 
 
+def write_png(img, path: Path) -> None:
+    """Save a float RGB image [H,W,3] in [0,1] (numpy or torch) as an 8-bit PNG (clipped, rounded)."""
+    if hasattr(img, "detach"):
+        img = img.detach().cpu().numpy()
+    _save_png(_to_uint8(img), Path(path))
+
+
 def _fmt(v, digits: int) -> str:
     if v is None:
         return "-"

@@ -5,18 +5,11 @@ import json
 from pathlib import Path
 
 import numpy as np
-import torch
-from PIL import Image
 
 from trisplat import run as layout
 from trisplat.scene.sh import sh_dc_to_rgb
 
 MESH_FORMATS = ("ply", "obj", "glb")
-
-
-def to_png(img: torch.Tensor | np.ndarray, path: Path) -> None:
-    arr = img.detach().cpu().numpy() if torch.is_tensor(img) else np.asarray(img)
-    Image.fromarray((np.clip(arr, 0, 1) * 255 + 0.5).astype(np.uint8)).save(path)
 
 
 def image_stem(camera, index: int) -> str:
@@ -42,6 +35,7 @@ def write_outputs(trainer, pruned) -> dict:
     The test split is scored with the opaque mesh (hard z-buffer render, the deliverable) and with the soft
     renderer at the final sigma, so the gap between them is on record.
     """
+    from trisplat.eval.report import write_png
     from trisplat.eval.views import evaluate_run, render_view
 
     run_dir, data, cfg = trainer.run_dir, trainer.data, trainer.cfg
@@ -54,7 +48,7 @@ def write_outputs(trainer, pruned) -> dict:
     renders.mkdir(exist_ok=True)
     for i in list(data.test_indices)[: cfg.num_renders]:
         cam = data.cameras[int(i)]
-        to_png(render_view(scene, cam, "hard", cfg.background), renders / f"{image_stem(cam, int(i))}.png")
+        write_png(render_view(scene, cam, "hard", cfg.background), renders / f"{image_stem(cam, int(i))}.png")
 
     metrics: dict = {}
     if len(data.test_indices):
