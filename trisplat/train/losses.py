@@ -40,6 +40,15 @@ def depth_to_normal(depth: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor,
 
 def normal_consistency(normal: torch.Tensor, depth: torch.Tensor, alpha: torch.Tensor, K: torch.Tensor,
                        min_alpha: float = 0.5) -> torch.Tensor:
+    """normal_consistency_torch's value and gradients; a fused Numba kernel on CPU float32 (~8x faster)."""
+    from trisplat.train.fused_normal import normal_consistency_fused
+
+    out = normal_consistency_fused(normal, depth, alpha, K, min_alpha)
+    return normal_consistency_torch(normal, depth, alpha, K, min_alpha) if out is None else out
+
+
+def normal_consistency_torch(normal: torch.Tensor, depth: torch.Tensor, alpha: torch.Tensor, K: torch.Tensor,
+                             min_alpha: float = 0.5) -> torch.Tensor:
     """2DGS-style sum_i w_i (1 - n_i . N) = alpha - n_rendered . N, averaged over covered pixels, where N is the
     normal of the rendered surface depth (expected depth / alpha)."""
     covered = alpha > min_alpha
