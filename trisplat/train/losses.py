@@ -6,13 +6,13 @@ import torch.nn.functional as F
 
 
 def photometric(pred: torch.Tensor, gt: torch.Tensor, lambda_dssim: float) -> torch.Tensor:
-    """(1 - lambda) * L1 + lambda * (1 - SSIM) on [H,W,3] images."""
-    from trisplat.eval.image_metrics import ssim_torch
+    """(1 - lambda) * L1 + lambda * (1 - SSIM) on [H,W,3] images (the fused Numba loss for CPU float32 renders,
+    see `trisplat.train.fused_ssim`; lambda 0 is the plain L1)."""
+    from trisplat.train.fused_ssim import photometric_loss
 
-    l1 = (pred - gt).abs().mean()
     if lambda_dssim == 0:
-        return l1
-    return (1.0 - lambda_dssim) * l1 + lambda_dssim * (1.0 - ssim_torch(pred, gt))
+        return (pred - gt).abs().mean()
+    return photometric_loss(pred, gt, lambda_dssim)
 
 
 def depth_to_normal(depth: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
