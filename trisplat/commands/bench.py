@@ -1,4 +1,4 @@
-"""`trisplat bench render|train|mesh|all [options]`: one entry for the benchmarks (JSON + markdown in --out)."""
+"""`trisplat bench render|train|mesh|losses|all [options]`: one entry for the benchmarks (JSON + markdown in --out)."""
 from __future__ import annotations
 
 import importlib
@@ -11,13 +11,14 @@ SUITES: dict[str, tuple[str, str]] = {
     "render": ("trisplat.bench.render", "rasterizer forward/backward time and memory vs triangles and resolution"),
     "train": ("trisplat.bench.train", "training wall time and test PSNR/SSIM/LPIPS on reference scenes"),
     "mesh": ("trisplat.bench.mesh", "soup-to-mesh time, mesh statistics and z-buffer frames per second"),
+    "losses": ("trisplat.bench.losses", "training losses: fused Numba kernels vs their torch twins"),
 }
 DEFAULT_OUT = Path("bench_results")
 INDEX_MD = "index.md"
 
 
 def _usage() -> str:
-    lines = ["usage: trisplat bench {render,train,mesh,all} [options]   (trisplat bench SUITE --help for its options)",
+    lines = ["usage: trisplat bench {render,train,mesh,losses,all} [options]   (trisplat bench SUITE --help for its options)",
              "", "Each suite writes <name>.json (with machine, versions, commit) and <name>.md into --out "
              f"(default {DEFAULT_OUT}/).", "", "suites:"]  # fmt: skip
     lines += [f"  {name:<8} {desc}" for name, (_, desc) in SUITES.items()]
