@@ -59,7 +59,8 @@ def main(argv: list[str]) -> int:
             t_ms, f_ms = median_ms(torch_fn, args.repeats), median_ms(fused_fn, args.repeats)
             table.add(name, f"{size}x{size}", t_ms, f_ms, t_ms / f_ms)
             print(f"{name} {size}x{size}: torch {t_ms:.1f} ms, fused {f_ms:.1f} ms ({t_ms / f_ms:.1f}x)", flush=True)
-    table.notes.append("Medians of --repeats runs after one warm-up; forward and backward to every input that needs a gradient (the render; depth, alpha and normal).")
+    table.notes.append("Medians of --repeats runs after one warm-up; forward, then backward to every input that needs a "
+                       "gradient (the render; depth, alpha and normal).")
     md = table.write(args.out, "trisplat bench losses " + " ".join(argv))
     print(md.read_text())
     return 0
