@@ -56,7 +56,7 @@ def test_flat_surface_with_matching_normals_costs_nothing():
     normal = torch.zeros(H, W, 3)
     normal[..., 2] = -1.0
     out = normal_consistency_fused(normal.requires_grad_(), depth, alpha, K)
-    assert float(out) == pytest.approx(0.0, abs=1e-6)
+    assert float(out.detach()) == pytest.approx(0.0, abs=1e-6)
     normal2 = normal.detach().clone()
     normal2[..., 2] = 1.0  # facing away: the worst case, 1 - (-1) = 2
     assert float(normal_consistency_fused(normal2, depth, alpha, K)) == pytest.approx(2.0, abs=1e-6)
