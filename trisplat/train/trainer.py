@@ -27,6 +27,7 @@ from trisplat.train.config import TrainConfig
 
 MAX_ROLLBACKS = 3
 MINUTES_WARMUP_STEPS = 10  # steps timed before a --minutes run sets its step count
+MINUTES_REPLAN_AT = (0.2, 0.5, 0.8, 0.9, 0.95)  # progress at which a --minutes run re-plans from the recent step rate
 
 
 class TrainingDiverged(RuntimeError):
@@ -282,8 +283,9 @@ class Trainer:
         if self.show_progress:
             print("preparing the renderer (compiles once, then cached) ...", file=sys.stderr, flush=True)
         self.warm_up_kernels()
-        # --minutes: plan the step count after a short warm-up, then re-plan at a few points as the scene grows
-        replan_at = [p for p in (0.2, 0.5, 0.8) if p > self.clock.p(self.step)] if cfg.minutes else []
+        # --minutes: plan the step count after a short warm-up, then re-plan at a few points as the scene grows and
+        # (late, once pruning and sharp triangles make steps cheaper) shrinks, so the budget is used to the end
+        replan_at = [p for p in MINUTES_REPLAN_AT if p > self.clock.p(self.step)] if cfg.minutes else []
         planned = not cfg.minutes or self.step >= MINUTES_WARMUP_STEPS
         window: list[float] = []
         bar = tqdm(total=self.clock.total, initial=self.step, disable=not self.show_progress, unit="step",
