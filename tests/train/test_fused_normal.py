@@ -1,5 +1,4 @@
 """The fused depth-normal consistency kernel against its torch twin (value and every gradient)."""
-import numpy as np
 import pytest
 import torch
 
@@ -71,4 +70,3 @@ def test_nothing_covered_gives_zero_and_zero_gradients():
     out.backward()
     assert float(out.detach()) == 0.0
     assert all(float(t.grad.abs().max()) == 0.0 for t in (normal, depth, alpha))
-    assert np.isfinite(float(out))
