@@ -29,6 +29,22 @@ def _ray(x, y, K):
     return (x + 0.5 - K[0, 2]) / K[0, 0], (y + 0.5 - K[1, 2]) / K[1, 1]
 
 
+@njit(cache=True, inline="always")
+def _differences(surf, K, x, y):
+    """Central differences du = P[x+1] - P[x-1], dv = P[y+1] - P[y-1] of the back-projected surface at (x, y)."""
+    rxp, ryp = _ray(x + 1, y, K)
+    rxm, rym = _ray(x - 1, y, K)
+    dux = rxp * surf[y, x + 1] - rxm * surf[y, x - 1]
+    duy = ryp * surf[y, x + 1] - rym * surf[y, x - 1]
+    duz = surf[y, x + 1] - surf[y, x - 1]
+    rxp, ryp = _ray(x, y + 1, K)
+    rxm, rym = _ray(x, y - 1, K)
+    dvx = rxp * surf[y + 1, x] - rxm * surf[y - 1, x]
+    dvy = ryp * surf[y + 1, x] - rym * surf[y - 1, x]
+    dvz = surf[y + 1, x] - surf[y - 1, x]
+    return dux, duy, duz, dvx, dvy, dvz
+
+
 @njit(parallel=True, cache=True)
 def _forward(normal, depth, alpha, K, min_alpha, surf, nd, mask):
     """surf [H,W], nd [H,W,3] (unit depth normals), mask [H,W]; returns (sum of terms, count)."""
@@ -45,16 +61,7 @@ def _forward(normal, depth, alpha, K, min_alpha, surf, nd, mask):
             if not (surf[y, x] > 0 and surf[y, x + 1] > 0 and surf[y, x - 1] > 0 and surf[y + 1, x] > 0
                     and surf[y - 1, x] > 0):
                 continue
-            rxp, ryp = _ray(x + 1, y, K)
-            rxm, rym = _ray(x - 1, y, K)
-            dux = rxp * surf[y, x + 1] - rxm * surf[y, x - 1]
-            duy = ryp * surf[y, x + 1] - rym * surf[y, x - 1]
-            duz = surf[y, x + 1] - surf[y, x - 1]
-            rxp, ryp = _ray(x, y + 1, K)
-            rxm, rym = _ray(x, y - 1, K)
-            dvx = rxp * surf[y + 1, x] - rxm * surf[y - 1, x]
-            dvy = ryp * surf[y + 1, x] - rym * surf[y - 1, x]
-            dvz = surf[y + 1, x] - surf[y - 1, x]
+            dux, duy, duz, dvx, dvy, dvz = _differences(surf, K, x, y)
             cx, cy, cz = duy * dvz - duz * dvy, duz * dvx - dux * dvz, dux * dvy - duy * dvx
             ln = max(math.sqrt(cx * cx + cy * cy + cz * cz), NORMALIZE_EPS)
             nx, ny, nz = cx / ln, cy / ln, cz / ln
@@ -84,16 +91,7 @@ def _backward(normal, depth, alpha, K, min_alpha, surf, nd, mask, scale, g_norma
                 continue
             for k in range(3):
                 g_normal[y, x, k] = -scale * nd[y, x, k]
-            rxp, ryp = _ray(x + 1, y, K)
-            rxm, rym = _ray(x - 1, y, K)
-            dux = rxp * surf[y, x + 1] - rxm * surf[y, x - 1]
-            duy = ryp * surf[y, x + 1] - rym * surf[y, x - 1]
-            duz = surf[y, x + 1] - surf[y, x - 1]
-            rxp, ryp = _ray(x, y + 1, K)
-            rxm, rym = _ray(x, y - 1, K)
-            dvx = rxp * surf[y + 1, x] - rxm * surf[y - 1, x]
-            dvy = ryp * surf[y + 1, x] - rym * surf[y - 1, x]
-            dvz = surf[y + 1, x] - surf[y - 1, x]
+            dux, duy, duz, dvx, dvy, dvz = _differences(surf, K, x, y)
             cx, cy, cz = duy * dvz - duz * dvy, duz * dvx - dux * dvz, dux * dvy - duy * dvx
             cl = math.sqrt(cx * cx + cy * cy + cz * cz)
             # N = sgn * c / max(|c|, eps); dL/dN = -scale * normal
@@ -165,8 +163,7 @@ class _NormalConsistency(torch.autograd.Function):
     def backward(ctx, grad):
         n, d, a, k, min_alpha, surf, nd, mask, count = ctx.saved
         if count == 0:
-            return torch.zeros_like(torch.from_numpy(n)), torch.zeros_like(torch.from_numpy(d)), \
-                torch.zeros_like(torch.from_numpy(a)), None, None
+            return torch.zeros(n.shape), torch.zeros(d.shape), torch.zeros(a.shape), None, None
         H, W = d.shape
         g_n = np.empty((H, W, 3), np.float32)
         g_d = np.empty((H, W), np.float32)
