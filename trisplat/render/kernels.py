@@ -271,6 +271,12 @@ def raster_forward(theta, rect, pair_face, tile_start, tile_pairs, width, height
             f = lf[j]
             th = loc[j]
             inv_r, o = th[T_INVR], th[T_OP]
+            s0, s1, s2 = th[T_S], th[T_S + 1], th[T_S + 2]
+            z0, z1, z2 = th[T_ZI], th[T_ZI + 1], th[T_ZI + 2]
+            cr0, cg0, cb0 = th[T_COL], th[T_COL + 1], th[T_COL + 2]
+            cr1, cg1, cb1 = th[T_COL + 3], th[T_COL + 4], th[T_COL + 5]
+            cr2, cg2, cb2 = th[T_COL + 6], th[T_COL + 7], th[T_COL + 8]
+            nn0, nn1, nn2 = th[T_NRM], th[T_NRM + 1], th[T_NRM + 2]
             maxw = np.float32(0.0)
             n0x, n0y, d0, n1x, n1y, d1, n2x, n2y, d2 = th[0], th[1], th[2], th[3], th[4], th[5], th[6], th[7], th[8]
             r0, r1, r2 = _recip(n0x), _recip(n1x), _recip(n2x)
@@ -308,18 +314,22 @@ def raster_forward(theta, rect, pair_face, tile_start, tile_pairs, width, height
                         continue
                     if a > alpha_max:
                         a = alpha_max
-                    b0, b1, b2 = -L1 * th[T_S], -L2 * th[T_S + 1], -L0 * th[T_S + 2]
-                    z0, z1, z2 = th[T_ZI], th[T_ZI + 1], th[T_ZI + 2]
+                    b0, b1, b2 = -L1 * s0, -L2 * s1, -L0 * s2
                     zinv = b0 * z0 + b1 * z1 + b2 * z2
+                    dep = np.float32(1.0) / zinv
                     if perspective:
-                        w0, w1, w2 = b0 * z0 / zinv, b1 * z1 / zinv, b2 * z2 / zinv
+                        w0, w1, w2 = b0 * z0 * dep, b1 * z1 * dep, b2 * z2 * dep
                     else:
                         w0, w1, w2 = b0, b1, b2
                     w = a * Tq
-                    for c in range(3):
-                        acc[q, c] += w * (w0 * th[T_COL + c] + w1 * th[T_COL + 3 + c] + w2 * th[T_COL + 6 + c])
-                        acc[q, 4 + c] += w * th[T_NRM + c]
-                    acc[q, 3] += w / zinv
+                    aq = acc[q]
+                    aq[0] += w * (w0 * cr0 + w1 * cr1 + w2 * cr2)
+                    aq[1] += w * (w0 * cg0 + w1 * cg1 + w2 * cg2)
+                    aq[2] += w * (w0 * cb0 + w1 * cb1 + w2 * cb2)
+                    aq[3] += w * dep
+                    aq[4] += w * nn0
+                    aq[5] += w * nn1
+                    aq[6] += w * nn2
                     Tn = Tq * (np.float32(1.0) - a)
                     T[q] = Tn
                     if w > maxw:

@@ -40,6 +40,29 @@ def sh_dc_to_rgb(dc: torch.Tensor) -> torch.Tensor:
     return (C0 * dc + 0.5).clamp(min=0.0)
 
 
+def sh_basis(dirs: torch.Tensor, degree: int) -> torch.Tensor:
+    """The real SH basis Y_k(dir) for bands 0..degree: [N,(degree+1)^2] (dirs [N,3], normalised here)."""
+    d = dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    x, y, z = d[..., 0:1], d[..., 1:2], d[..., 2:3]
+    cols = [torch.full_like(x, C0)]
+    if degree >= 1:
+        cols += [-C1 * y, C1 * z, -C1 * x]
+    if degree >= 2:
+        xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
+        cols += [C2[0] * xy, C2[1] * yz, C2[2] * (2.0 * zz - xx - yy), C2[3] * xz, C2[4] * (xx - yy)]
+        if degree >= 3:
+            cols += [
+                C3[0] * y * (3 * xx - yy),
+                C3[1] * xy * z,
+                C3[2] * y * (4 * zz - xx - yy),
+                C3[3] * z * (2 * zz - 3 * xx - 3 * yy),
+                C3[4] * x * (4 * zz - xx - yy),
+                C3[5] * z * (xx - yy),
+                C3[6] * x * (xx - 3 * yy),
+            ]
+    return torch.cat(cols, dim=-1)
+
+
 def eval_sh(sh: torch.Tensor, dirs: torch.Tensor, degree: int | None = None) -> torch.Tensor:
     """Colour from SH: sum_k sh[..., k, :] * Y_k(dir) + 0.5, clamped >= 0.
 
@@ -48,30 +71,8 @@ def eval_sh(sh: torch.Tensor, dirs: torch.Tensor, degree: int | None = None) -> 
     """
     K = sh.shape[-2]
     deg = sh_degree_from_bases(K) if degree is None else min(degree, sh_degree_from_bases(K))
-    d = dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    x, y, z = d[..., 0:1], d[..., 1:2], d[..., 2:3]
-    out = C0 * sh[..., 0, :]
-    if deg >= 1:
-        out = out - C1 * y * sh[..., 1, :] + C1 * z * sh[..., 2, :] - C1 * x * sh[..., 3, :]
-    if deg >= 2:
-        xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
-        out = (
-            out
-            + C2[0] * xy * sh[..., 4, :]
-            + C2[1] * yz * sh[..., 5, :]
-            + C2[2] * (2.0 * zz - xx - yy) * sh[..., 6, :]
-            + C2[3] * xz * sh[..., 7, :]
-            + C2[4] * (xx - yy) * sh[..., 8, :]
-        )
-        if deg >= 3:
-            out = (
-                out
-                + C3[0] * y * (3 * xx - yy) * sh[..., 9, :]
-                + C3[1] * xy * z * sh[..., 10, :]
-                + C3[2] * y * (4 * zz - xx - yy) * sh[..., 11, :]
-                + C3[3] * z * (2 * zz - 3 * xx - 3 * yy) * sh[..., 12, :]
-                + C3[4] * x * (4 * zz - xx - yy) * sh[..., 13, :]
-                + C3[5] * z * (xx - yy) * sh[..., 14, :]
-                + C3[6] * x * (xx - 3 * yy) * sh[..., 15, :]
-            )
+    basis = sh_basis(dirs, deg)
+    # one product and one sum: their backward is two products, not one zero-filled [N,K,3] tensor per
+    # coefficient (and an einsum's batched 1xK @ Kx3 matmuls are slower on a CPU)
+    out = (basis.unsqueeze(-1) * sh[..., : basis.shape[-1], :]).sum(-2)
     return (out + 0.5).clamp(min=0.0)
