@@ -291,14 +291,13 @@ def initial_scene(
 ) -> tuple[TriangleScene, InitReport]:
     """Initial triangles for a SceneData: 'auto' = Delaunay of its points, or random points in `data.bounds`
     when it has none; or force 'delaunay' | 'soup' | 'random'. Plus a background shell (background_shell) of
-    `shell` icosphere subdivisions: -1 = automatic (AUTO_SHELL_SUBDIVISIONS for COLMAP captures with sparse points,
-    i.e. real photos; none for Blender / NeRF-synthetic scenes on a plain background, whose points, if any, are
-    the object's own), 0 = none."""
+    `shell` icosphere subdivisions: -1 = automatic (AUTO_SHELL_SUBDIVISIONS for captures with sparse points, i.e.
+    real photos; none for synthetic scenes on a plain background), 0 = none."""
     scene, report = _initial_triangles(data, method, sh_degree, seed, opacity, max_points, random_points,
                                        random_size_factor)
+    has_points = data.points is not None and len(data.points) > 0
     if shell < 0:
-        has_points = data.points is not None and len(data.points) > 0
-        shell = AUTO_SHELL_SUBDIVISIONS if has_points and data.format == "colmap" else 0
+        shell = AUTO_SHELL_SUBDIVISIONS if has_points else 0
     if shell > 0:
         bg = background_shell([cam.center for cam in data.cameras], data.points, data.point_colors, shell,
                               opacity, scene.sh_degree)

@@ -36,8 +36,8 @@ class TrainConfig:
     """Random initialisation: triangle circumradius / RMS distance to the 3 nearest random points."""
     init_shell: int = -1
     """Background shell around the capture, in icosphere subdivisions (3 = 1280 faces): it gives the image borders
-    the sparse points miss something to render. -1 = auto (3 for COLMAP captures, i.e. real photos with sparse
-    points; none for synthetic scenes on a plain background); 0 = none."""
+    the sparse points miss something to render. -1 = auto (3 for captures with sparse points, none otherwise);
+    0 = none."""
     init_opacity: float = 0.28
     sh_degree: int = 3
     """Maximum SH degree (0-3); the active degree rises by one every 1k paper-iterations."""
