@@ -9,11 +9,8 @@ import torch
 from conftest import shared_data
 
 from trisplat.scene.init import (
-    AUTO_SHELL_SUBDIVISIONS,
-    SHELL_MARGIN,
     SOUP_SIZE_FACTOR,
     TSPLUS_OPACITY,
-    background_shell,
     init_delaunay,
     init_random,
     init_soup,
@@ -170,58 +167,11 @@ def test_initial_scene_on_captures(tmp_path):
     np.testing.assert_allclose(lego.bounds[0], lo)
 
     fox = load_dataset(shared_data("fox") / "sparse" / "0", downscale=8, cache_dir=tmp_path, prepare="lazy")
-    scene, report = initial_scene(fox, sh_degree=3, shell=0)
+    scene, report = initial_scene(fox, sh_degree=3)
     distinct = len(np.unique(fox.points, axis=0))  # the float32 cloud has a few exact duplicates
     assert report.method == "delaunay" and report.duplicates_removed == 13540 - distinct
     assert report.vertices == distinct and report.faces > 5 * distinct
-    # photos with sparse points get the background shell by default (appended after the Delaunay faces)
-    with_shell, report = initial_scene(fox, sh_degree=3)
-    shell_faces = 20 * 4**AUTO_SHELL_SUBDIVISIONS
-    assert with_shell.num_faces == scene.num_faces + shell_faces and report.faces == with_shell.num_faces
-    assert torch.equal(with_shell.faces[: scene.num_faces], scene.faces)
-    assert with_shell.faces[scene.num_faces:].min() == scene.num_vertices and "background shell" in report.summary()
-    scene, report = initial_scene(fox, method="soup", max_points=1000, shell=0)
+    scene, report = initial_scene(fox, method="soup", max_points=1000)
     assert report.subsampled_from == distinct and report.faces == 1000
     with pytest.raises(ValueError, match="needs points"):
         initial_scene(lego, method="delaunay")
-
-
-def test_background_shell_encloses_cameras_and_points():
-    rng = np.random.default_rng(0)
-    cams = rng.normal(size=(12, 3)) + [5.0, 0.0, 0.0]
-    pts = rng.normal(scale=2.0, size=(1000, 3)) + [5.0, 0.0, 0.0]
-    cols = rng.random((1000, 3))
-    shell = background_shell(cams, pts, cols, subdivisions=2, opacity=0.3, sh_degree=1)
-    mid = cams.mean(0)
-    want_r = SHELL_MARGIN * max(np.linalg.norm(cams - mid, axis=1).max(),
-                                np.percentile(np.linalg.norm(pts - mid, axis=1), 98))
-    r = np.linalg.norm(shell.positions.numpy() - mid, axis=1)
-    np.testing.assert_allclose(r, want_r, rtol=1e-5)
-    assert shell.num_faces == 320 and shell.sh_degree == 1
-    np.testing.assert_allclose(shell.base_colors().numpy(), np.tile(cols.mean(0), (shell.num_vertices, 1)),
-                               atol=1e-6)
-    np.testing.assert_allclose(shell.opacities().numpy(), 0.3, atol=1e-6)
-    import trimesh
-
-    m = trimesh.Trimesh(shell.positions.numpy(), shell.faces.numpy(), process=False)
-    assert m.is_watertight and m.euler_number == 2  # one closed sphere, shared vertices
-    # no points: the cameras alone set the radius, the colour is grey
-    alone = background_shell(cams, None, None, subdivisions=1)
-    np.testing.assert_allclose(np.linalg.norm(alone.positions.numpy() - mid, axis=1),
-                               SHELL_MARGIN * np.linalg.norm(cams - mid, axis=1).max(), rtol=1e-5)
-    np.testing.assert_allclose(alone.base_colors().numpy(), 0.5, atol=1e-6)
-    with pytest.raises(ValueError, match="subdivisions"):
-        background_shell(cams, subdivisions=0)
-    with pytest.raises(ValueError, match="camera centre"):
-        background_shell(np.full((2, 3), np.nan))
-
-
-def test_concatenated_scene_shifts_faces_and_checks_sh():
-    a = init_delaunay(np.random.default_rng(1).random((10, 3)), sh_degree=1)[0]
-    b = background_shell(np.zeros((1, 3)) + [0, 0, 1], None, None, subdivisions=1, sh_degree=1)
-    ab = a.concatenated(b)
-    assert ab.num_vertices == a.num_vertices + b.num_vertices and ab.num_faces == a.num_faces + b.num_faces
-    assert torch.equal(ab.positions[ab.faces[a.num_faces:].long()], b.positions[b.faces.long()])
-    assert torch.equal(ab.sh[: a.num_vertices], a.sh) and torch.equal(ab.opacity_logit[a.num_vertices:], b.opacity_logit)
-    with pytest.raises(ValueError, match="SH coefficients"):
-        a.concatenated(background_shell(np.zeros((1, 3)), subdivisions=1, sh_degree=0))

@@ -18,9 +18,6 @@ MIN_SOUP_RELATIVE_SIZE = 1e-4  # smallest soup triangle radius, x bounding-box d
 DEFAULT_RANDOM_POINTS = 10_000
 QHULL_OPTIONS = "Qbb Qc Qz Q12"  # scipy's defaults for 3-D Delaunay
 QHULL_JOGGLE_OPTIONS = "QJ Qbb"  # retry: joggled input always yields simplices
-SHELL_MARGIN = 1.5  # background shell radius / the larger of the farthest camera and the far points (from the cameras' mean)
-SHELL_POINT_PERCENTILE = 98.0  # "far points": this percentile of the point distances (outliers ignored)
-AUTO_SHELL_SUBDIVISIONS = 3  # icosphere subdivisions of the automatic shell: 1280 faces
 
 
 @dataclass
@@ -243,41 +240,6 @@ def init_random(
     return scene, report
 
 
-def background_shell(
-    centers, points=None, colors=None, subdivisions: int = AUTO_SHELL_SUBDIVISIONS,
-    opacity: float = TSPLUS_OPACITY, sh_degree: int = 3,
-) -> TriangleScene:
-    """An icosphere (shared vertices) around the whole capture: centre = mean camera centre, radius = SHELL_MARGIN x
-    the larger of the farthest camera and the SHELL_POINT_PERCENTILE-th point distance; colour = mean point colour.
-
-    Real captures see more than their sparse points cover: walls and furniture at the image borders have no SfM
-    points, so no Delaunay face, and render as background. The shell gives those pixels triangles to take over
-    (densification subdivides them where detail is needed). centers [C,3]; points [P,3] or None; colors [P,3]."""
-    import trimesh
-
-    if subdivisions < 1:
-        raise ValueError(f"background shell needs subdivisions >= 1, got {subdivisions}")
-    c = np.asarray(centers, dtype=np.float64).reshape(-1, 3)
-    c = c[np.isfinite(c).all(1)]
-    if len(c) == 0:
-        raise ValueError("background shell needs at least one finite camera centre")
-    mid = c.mean(0)
-    radius = float(np.linalg.norm(c - mid, axis=1).max())
-    rgb = np.full(3, 0.5)
-    if points is not None and len(points):
-        pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-        ok = np.isfinite(pts).all(1)
-        if ok.any():
-            radius = max(radius, float(np.percentile(np.linalg.norm(pts[ok] - mid, axis=1), SHELL_POINT_PERCENTILE)))
-            if colors is not None:
-                rgb = np.clip(np.asarray(colors, dtype=np.float64).reshape(-1, 3)[ok].mean(0), 0.0, 1.0)
-    radius = SHELL_MARGIN * (radius if radius > 0 else 1.0)
-    ico = trimesh.creation.icosphere(subdivisions=int(subdivisions))
-    verts = (mid + radius * np.asarray(ico.vertices)).astype(np.float32)
-    return TriangleScene.from_rgb(verts, np.asarray(ico.faces, dtype=np.int32), np.tile(rgb, (len(verts), 1)),
-                                  opacity, sh_degree)
-
-
 def initial_scene(
     data,
     method: str = "auto",
@@ -287,27 +249,9 @@ def initial_scene(
     max_points: int | None = None,
     random_points: int = DEFAULT_RANDOM_POINTS,
     random_size_factor: float = SOUP_SIZE_FACTOR,
-    shell: int = -1,
 ) -> tuple[TriangleScene, InitReport]:
     """Initial triangles for a SceneData: 'auto' = Delaunay of its points, or random points in `data.bounds`
-    when it has none; or force 'delaunay' | 'soup' | 'random'. Plus a background shell (background_shell) of
-    `shell` icosphere subdivisions: -1 = automatic (AUTO_SHELL_SUBDIVISIONS for captures with sparse points, i.e.
-    real photos; none for synthetic scenes on a plain background), 0 = none."""
-    scene, report = _initial_triangles(data, method, sh_degree, seed, opacity, max_points, random_points,
-                                       random_size_factor)
-    has_points = data.points is not None and len(data.points) > 0
-    if shell < 0:
-        shell = AUTO_SHELL_SUBDIVISIONS if has_points else 0
-    if shell > 0:
-        bg = background_shell([cam.center for cam in data.cameras], data.points, data.point_colors, shell,
-                              opacity, scene.sh_degree)
-        scene = scene.concatenated(bg)
-        report.vertices, report.faces = scene.num_vertices, scene.num_faces
-        report.notes.append(f"background shell: {bg.num_faces} faces")
-    return scene, report
-
-
-def _initial_triangles(data, method, sh_degree, seed, opacity, max_points, random_points, random_size_factor):
+    when it has none; or force 'delaunay' | 'soup' | 'random'."""
     if method not in ("auto", "delaunay", "soup", "random"):
         raise ValueError(f"unknown initialisation method {method!r} (auto, delaunay, soup, random)")
     has_points = data.points is not None and len(data.points) > 0

@@ -66,18 +66,6 @@ class TriangleScene:
             faces=self.faces.detach().clone(),
         )
 
-    def concatenated(self, other: TriangleScene) -> TriangleScene:
-        """This scene's vertices and faces followed by `other`'s (its face indices shifted); same SH degree."""
-        if other.sh.shape[1] != self.sh.shape[1]:
-            raise ValueError(f"cannot join scenes with {self.sh.shape[1]} and {other.sh.shape[1]} SH coefficients")
-        return replace(
-            self,
-            positions=torch.cat([self.positions, other.positions.to(self.positions)]),
-            sh=torch.cat([self.sh, other.sh.to(self.sh)]),
-            opacity_logit=torch.cat([self.opacity_logit, other.opacity_logit.to(self.opacity_logit)]),
-            faces=torch.cat([self.faces, other.faces.to(self.faces) + self.num_vertices]),
-        )
-
     @staticmethod
     def from_rgb(positions, faces, rgb, opacity: float = 0.5, sh_degree: int = 0) -> TriangleScene:
         """A scene with constant vertex opacity and colour `rgb` [V,3] in the DC band (higher bands zero)."""

@@ -34,10 +34,6 @@ class TrainConfig:
     """Triangles for random initialisation (scenes without sparse points)."""
     init_random_size: float = 2.23
     """Random initialisation: triangle circumradius / RMS distance to the 3 nearest random points."""
-    init_shell: int = -1
-    """Background shell around the capture, in icosphere subdivisions (3 = 1280 faces): it gives the image borders
-    the sparse points miss something to render. -1 = auto (3 for captures with sparse points, none otherwise);
-    0 = none."""
     init_opacity: float = 0.28
     sh_degree: int = 3
     """Maximum SH degree (0-3); the active degree rises by one every 1k paper-iterations."""
@@ -145,10 +141,8 @@ PRESETS: dict[str, dict] = {
     "full": dict(steps=30_000, sh_degree=3, max_vertices=2_000_000, supersample_4x_from=0.95),
     # MeshSplatting: soup initialisation, stage 2 restricted Delaunay at ~11k/30k, fine-tuning after.
     # No pruning after the switch and no final max-weight pass: both would open holes in the connected surface.
-    # No background shell: the restricted Delaunay switch meshes every vertex, and the shell's would span the scene.
     "meshsplatting": dict(steps=7_000, init="soup", connect_at=11_000 / PAPER_STEPS,
-                          densify_until=10_000 / PAPER_STEPS, max_vertices=300_000, final_max_weight_pass=False,
-                          init_shell=0),
+                          densify_until=10_000 / PAPER_STEPS, max_vertices=300_000, final_max_weight_pass=False),
 }
 
 
