@@ -82,3 +82,42 @@ def test_hard_sh_degree0_and_batched():
     assert (a.face_id < 0).sum() > 50
     np.testing.assert_allclose(a.rgb.numpy()[a.face_id.numpy() < 0], [[0.1, 0.2, 0.3]] * int((a.face_id < 0).sum()),
                                atol=1e-6)
+
+
+def test_hard_deep_scene_matches_brute_force():
+    """Thousands of overlapping faces (tens of layers per pixel): the slab order, the occlusion culling and its
+    lazily refreshed block depths must never hide the nearest face; max_weight marks exactly the winners."""
+    pos, faces, col, _, w2c, K = random_scene(11, 3000, 64, 48, kinds=False)
+    out = rasterize_hard(pos, faces, col, w2c, K, 64, 48)
+    fid, rgb, depth = brute_force(pos.numpy(), faces.numpy(), col.numpy(), w2c.numpy(), K.numpy(), 64, 48)
+    same = out.face_id.numpy() == fid
+    assert same.mean() >= 1 - BOUNDARY_FRACTION
+    assert out.pairs_evaluated < 0.5 * (fid >= 0).sum() * 30  # culling skipped most of the ~30 layers
+    np.testing.assert_allclose(out.rgb.numpy()[same], rgb[same], atol=1e-4)
+    np.testing.assert_allclose(out.depth.numpy()[same], depth[same], rtol=1e-4)
+    winners = np.zeros(faces.shape[0])
+    winners[out.face_id.numpy()[out.face_id.numpy() >= 0]] = 1
+    np.testing.assert_array_equal(out.max_weight.numpy(), winners)
+
+
+def test_depth_order_is_a_stable_sort_by_slab_with_gathered_rows():
+    from trisplat.render.hard import ORDER_CHUNKS, depth_order
+
+    rng = np.random.default_rng(0)
+    F = 10 * ORDER_CHUNKS + 7  # chunks of unequal size
+    znear = rng.uniform(0.1, 1.0, F).astype(np.float32)
+    box = np.tile(np.array([[0, 5, 0, 5]], np.int32), (F, 1))
+    box[rng.random(F) < 0.2, :2] = (1, 0)  # culled faces are left out
+    uvz = rng.random((F, 9)).astype(np.float32)
+    order, uvz_o = np.empty(F, np.int32), np.empty((F, 9), np.float32)
+    box_o, znear_o = np.empty((F, 4), np.int32), np.empty(F, np.float32)
+    n = depth_order(box, znear, uvz, 16, order, uvz_o, box_o, znear_o)
+    vis = np.flatnonzero(box[:, 0] <= box[:, 1])
+    z = 1.0 / znear[vis].astype(np.float64)
+    slab = np.minimum(15, ((z - z.min()) * (16 / (z.max() - z.min()))).astype(int))
+    expected = vis[np.argsort(slab, kind="stable")]
+    assert n == len(vis)
+    np.testing.assert_array_equal(order[:n], expected)
+    np.testing.assert_array_equal(uvz_o[:n], uvz[expected])
+    np.testing.assert_array_equal(box_o[:n], box[expected])
+    np.testing.assert_array_equal(znear_o[:n], znear[expected])
