@@ -67,8 +67,22 @@ def eval_sh(sh: torch.Tensor, dirs: torch.Tensor, degree: int | None = None) -> 
     """Colour from SH: sum_k sh[..., k, :] * Y_k(dir) + 0.5, clamped >= 0.
 
     sh: [N,K,3] coefficients, K = (d+1)^2; dirs: [N,3] view directions (camera centre -> vertex; normalised
-    here); degree: evaluate only bands 0..degree (default: all K). Returns [N,3].
+    here); degree: evaluate only bands 0..degree (default: all K). Returns [N,3]. CPU float tensors go through the
+    fused Numba kernels (trisplat.scene.sh_kernels), anything else through eval_sh_torch; both are exact and
+    differentiable w.r.t. sh and dirs, and agree to rounding (tested).
     """
+    K = sh.shape[-2]
+    deg = sh_degree_from_bases(K) if degree is None else min(degree, sh_degree_from_bases(K))
+    if (sh.ndim == 3 and dirs.ndim == 2 and sh.device.type == "cpu" and dirs.device.type == "cpu"
+            and sh.dtype in (torch.float32, torch.float64) and dirs.is_floating_point()):
+        from trisplat.scene.sh_kernels import FusedSH
+
+        return FusedSH.apply(sh, dirs, num_sh_bases(deg))
+    return eval_sh_torch(sh, dirs, deg)
+
+
+def eval_sh_torch(sh: torch.Tensor, dirs: torch.Tensor, degree: int | None = None) -> torch.Tensor:
+    """eval_sh in plain torch ops (any device; the readable oracle of the fused kernels)."""
     K = sh.shape[-2]
     deg = sh_degree_from_bases(K) if degree is None else min(degree, sh_degree_from_bases(K))
     basis = sh_basis(dirs, deg)

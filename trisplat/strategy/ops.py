@@ -69,6 +69,13 @@ class TrainableScene:
             self.face_stats[name] = torch.zeros_like(self.face_stats[name])
 
 
+def make_adam(groups: list[dict]) -> torch.optim.Adam:
+    """Adam with eps 1e-15 (Triangle Splatting+), one group per vertex parameter. The fused implementation (one
+    kernel per parameter) takes ~12 ms a step at 125k vertices with SH degree 3 where the per-op one takes ~35-55 ms
+    (2 threads); the maths is the same."""
+    return torch.optim.Adam(groups, eps=1e-15, fused=True)
+
+
 def make_trainable(scene: TriangleScene, lrs: dict[str, float]) -> TrainableScene:
     """Parameters and an Adam optimizer (eps 1e-15, one group per parameter named after it)."""
     sh = scene.sh.detach()
@@ -79,7 +86,7 @@ def make_trainable(scene: TriangleScene, lrs: dict[str, float]) -> TrainableScen
         "opacity_logit": torch.nn.Parameter(scene.opacity_logit.detach().clone()),
     }
     groups = [{"params": [params[n]], "lr": lrs.get(n, 0.0), "name": n} for n in VERTEX_PARAMS]
-    opt = torch.optim.Adam(groups, eps=1e-15)
+    opt = make_adam(groups)
     ts = TrainableScene(params=params, optimizer=opt, faces=scene.faces.to(torch.int64).clone(),
                         opacity_floor=scene.opacity_floor)
     ts.reset_face_stats()

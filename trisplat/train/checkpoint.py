@@ -48,7 +48,7 @@ def restore_trainable(ckpt: dict) -> ops.TrainableScene:
     """Rebuild the TrainableScene (parameters, Adam state, faces, statistics) saved by checkpoint_state."""
     params = {k: torch.nn.Parameter(v.clone()) for k, v in ckpt["params"].items()}
     groups = [{"params": [params[n]], "lr": ckpt["optimizer"][n]["lr"], "name": n} for n in ops.VERTEX_PARAMS]
-    opt = torch.optim.Adam(groups, eps=1e-15)
+    opt = ops.make_adam(groups)
     for n in ops.VERTEX_PARAMS:
         st = ckpt["optimizer"][n]["state"]
         if st:
