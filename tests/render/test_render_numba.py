@@ -41,12 +41,14 @@ SCENES = [
     (0, "soup", {}), (1, "soup", {}), (2, "mesh", {}), (3, "soup", {"perspective_correct": True}),
     (4, "mesh", {"opacity_mode": "mean"}), (5, "soup", {"tile_size": 8}), (6, "soup", {"supersample": 2}),
     (7, "mesh", {"perspective_correct": True, "tile_size": 32}),
+    (8, "deep", {"tile_size": 32}),  # ~100 pairs per tile: several gather blocks, tiles that turn opaque early
 ]
 
 
 @pytest.mark.parametrize("seed,kind,opts", SCENES)
 def test_numba_matches_reference_forward_and_backward(seed, kind, opts):
-    scene = random_scene(seed, 30) if kind == "soup" else mesh_scene(seed)
+    scene = {"soup": lambda: random_scene(seed, 30), "deep": lambda: random_scene(seed, 200, opacity_range=(0.6, 0.95)),
+             "mesh": lambda: mesh_scene(seed)}[kind]()
     res = _both(scene, opts, seed)
     (ref, gref), (nb, gnb) = res["reference"], res["numba"]
     _close_images(ref, nb)
