@@ -1,8 +1,9 @@
-"""`trisplat bench losses`: the training losses' fused Numba kernels vs their torch twins (forward + backward).
+"""`trisplat bench losses`: the training step's fused Numba kernels vs their torch twins (forward + backward).
 
-Random images (the kernels' cost does not depend on content): L1 + D-SSIM on [H,W,3], and the depth-normal
-consistency on a rendered-looking depth / alpha / normal triple. Both versions run in the same process, one right
-after the other, so their ratio means more than either time on a shared machine.
+Random inputs (the kernels' cost does not depend on content): L1 + D-SSIM on [H,W,3], the depth-normal consistency
+on a rendered-looking depth / alpha / normal triple, and the SH colour of V vertices at degree 3 (gradients to the
+coefficients and the view directions). Both versions run in the same process, one right after the other, so their
+ratio means more than either time on a shared machine.
 """
 from __future__ import annotations
 
@@ -20,6 +21,8 @@ class LossBenchArgs:
 
     sizes: list[int] = field(default_factory=lambda: [400, 800])
     """square image sizes (pixels)"""
+    sh_vertices: list[int] = field(default_factory=lambda: [20_000, 125_000])
+    """vertex counts for the SH colour case (degree 3)"""
     repeats: int = 10
     out: Path = Path("bench_results")
     """folder for losses.json and losses.md"""
@@ -51,16 +54,40 @@ def _cases(size: int):
     ]
 
 
+def _sh_case(n: int):
+    import torch
+
+    from trisplat.scene.sh import eval_sh_torch
+    from trisplat.scene.sh_kernels import FusedSH
+
+    g = torch.Generator().manual_seed(n)
+    sh = (0.5 * torch.randn(n, 16, 3, generator=g)).requires_grad_()
+    dirs = torch.randn(n, 3, generator=g).requires_grad_()
+    w = torch.rand(n, 3, generator=g)
+
+    def run(f):
+        def call():
+            (f() * w).sum().backward()
+        return call
+
+    return run(lambda: eval_sh_torch(sh, dirs)), run(lambda: FusedSH.apply(sh, dirs, 16))
+
+
 def main(argv: list[str]) -> int:
     args = tyro.cli(LossBenchArgs, args=argv, prog="trisplat bench losses", description=__doc__)
-    table = BenchTable("losses", ["loss", "image", "torch fwd+bwd ms", "fused fwd+bwd ms", "speed-up"])
+    table = BenchTable("losses", ["kernel", "size", "torch fwd+bwd ms", "fused fwd+bwd ms", "speed-up"])
     for size in args.sizes:
         for name, torch_fn, fused_fn in _cases(size):
             t_ms, f_ms = median_ms(torch_fn, args.repeats), median_ms(fused_fn, args.repeats)
             table.add(name, f"{size}x{size}", t_ms, f_ms, t_ms / f_ms)
             print(f"{name} {size}x{size}: torch {t_ms:.1f} ms, fused {f_ms:.1f} ms ({t_ms / f_ms:.1f}x)", flush=True)
+    for n in args.sh_vertices:
+        torch_fn, fused_fn = _sh_case(n)
+        t_ms, f_ms = median_ms(torch_fn, args.repeats), median_ms(fused_fn, args.repeats)
+        table.add("SH colour, degree 3", f"{n} vertices", t_ms, f_ms, t_ms / f_ms)
+        print(f"SH colour {n} vertices: torch {t_ms:.1f} ms, fused {f_ms:.1f} ms ({t_ms / f_ms:.1f}x)", flush=True)
     table.notes.append("Medians of --repeats runs after one warm-up; forward, then backward to every input that needs a "
-                       "gradient (the render; depth, alpha and normal).")
+                       "gradient (the render; depth, alpha and normal; SH coefficients and view directions).")
     md = table.write(args.out, "trisplat bench losses " + " ".join(argv))
     print(md.read_text())
     return 0

@@ -11,7 +11,7 @@ SUITES: dict[str, tuple[str, str]] = {
     "render": ("trisplat.bench.render", "rasterizer forward/backward time and memory vs triangles and resolution"),
     "train": ("trisplat.bench.train", "training wall time and test PSNR/SSIM/LPIPS on reference scenes"),
     "mesh": ("trisplat.bench.mesh", "soup-to-mesh time, mesh statistics and z-buffer frames per second"),
-    "losses": ("trisplat.bench.losses", "training losses: fused Numba kernels vs their torch twins"),
+    "losses": ("trisplat.bench.losses", "training step kernels (losses, SH colour): fused Numba vs their torch twins"),
 }
 DEFAULT_OUT = Path("bench_results")
 INDEX_MD = "index.md"

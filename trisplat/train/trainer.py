@@ -268,14 +268,18 @@ class Trainer:
         self.clock.replan(self.step, self.step + remaining)
 
     def warm_up_kernels(self) -> float:
-        """Compile the renderer's kernels (first use only; Numba caches them on disk) outside the timed loop, so
-        wall time and --minutes planning measure training. Returns the seconds it took."""
+        """Compile the renderer's, the SH colour's and the photometric loss's kernels (first use only; Numba caches
+        them on disk) outside the timed loop, so wall time and --minutes planning measure training. Returns the
+        seconds it took."""
         t0 = time.perf_counter()
         pos = torch.tensor([[-0.5, -0.5, 2.0], [0.5, -0.5, 2.0], [0.0, 0.5, 2.0]], requires_grad=True)
-        out = rasterize(pos, torch.tensor([[0, 1, 2]], dtype=torch.int32), torch.full((3, 3), 0.5),
-                        torch.full((3,), 0.5), 0.5, torch.eye(4), torch.tensor([[8.0, 0, 4], [0, 8.0, 4], [0, 0, 1]]),
-                        8, 8, background=self.background, backend=self.cfg.backend)
-        (out.rgb.sum() + out.depth.sum() + out.normal.sum()).backward()
+        sh = torch.zeros(3, num_sh_bases(self.cfg.sh_degree), 3, requires_grad=True)  # SH like training
+        out = rasterize(pos, torch.tensor([[0, 1, 2]], dtype=torch.int32), sh,
+                        torch.full((3,), 0.5), 0.5, torch.eye(4),
+                        torch.tensor([[16.0, 0, 8], [0, 16.0, 8], [0, 0, 1]]), 16, 16, background=self.background,
+                        backend=self.cfg.backend)
+        loss = losses.photometric(out.rgb, torch.full((16, 16, 3), 0.5), self.cfg.lambda_dssim)
+        (loss + out.depth.sum() + out.normal.sum()).backward()
         return time.perf_counter() - t0
 
     def train(self, stop_after: int | None = None) -> TrainResult:
