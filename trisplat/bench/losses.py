@@ -28,6 +28,13 @@ class LossBenchArgs:
     """folder for losses.json and losses.md"""
 
 
+def _fwd_bwd(f):
+    """A call that evaluates the scalar f() and backpropagates it."""
+    def call():
+        f().backward()
+    return call
+
+
 def _cases(size: int):
     import torch
 
@@ -41,16 +48,10 @@ def _cases(size: int):
     depth = (alpha.detach() * (2.0 + torch.rand(size, size, generator=g))).requires_grad_()
     normal = torch.nn.functional.normalize(torch.randn(size, size, 3, generator=g), dim=-1).requires_grad_()
     K = torch.tensor([[1.2 * size, 0.0, size / 2], [0.0, 1.2 * size, size / 2], [0.0, 0.0, 1.0]])
-
-    def run(f):
-        def call():
-            f().backward()
-        return call
-
     return [
-        ("L1 + D-SSIM", run(lambda: photometric_torch(pred, gt, 0.2)), run(lambda: losses.photometric(pred, gt, 0.2))),
-        ("depth-normal consistency", run(lambda: losses.normal_consistency_torch(normal, depth, alpha, K)),
-         run(lambda: losses.normal_consistency(normal, depth, alpha, K))),
+        ("L1 + D-SSIM", _fwd_bwd(lambda: photometric_torch(pred, gt, 0.2)), _fwd_bwd(lambda: losses.photometric(pred, gt, 0.2))),
+        ("depth-normal consistency", _fwd_bwd(lambda: losses.normal_consistency_torch(normal, depth, alpha, K)),
+         _fwd_bwd(lambda: losses.normal_consistency(normal, depth, alpha, K))),
     ]
 
 
@@ -64,13 +65,8 @@ def _sh_case(n: int):
     sh = (0.5 * torch.randn(n, 16, 3, generator=g)).requires_grad_()
     dirs = torch.randn(n, 3, generator=g).requires_grad_()
     w = torch.rand(n, 3, generator=g)
-
-    def run(f):
-        def call():
-            (f() * w).sum().backward()
-        return call
-
-    return run(lambda: eval_sh_torch(sh, dirs)), run(lambda: FusedSH.apply(sh, dirs, 16))
+    return (_fwd_bwd(lambda: (eval_sh_torch(sh, dirs) * w).sum()),
+            _fwd_bwd(lambda: (FusedSH.apply(sh, dirs, 16) * w).sum()))
 
 
 def main(argv: list[str]) -> int:

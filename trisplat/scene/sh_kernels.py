@@ -107,8 +107,9 @@ def _unit(dirs, n):
 
 
 @njit(parallel=True, cache=True)
-def sh_forward(sh, dirs, K, out):
-    """out [N,3] = max(sum_{k<K} Y_k(dirs[n]) sh[n,k,:] + 0.5, 0); sh [N,K',3] with K' >= K, dirs [N,3]."""
+def sh_forward(sh, dirs, K, out, live):
+    """out [N,3] = max(sum_{k<K} Y_k(dirs[n]) sh[n,k,:] + 0.5, 0); sh [N,K',3] with K' >= K, dirs [N,3].
+    live [N,3] (bool) records where the clamp passes the gradient: its input is >= 0 (as torch.clamp)."""
     N = sh.shape[0]
     for ch in prange(CHUNKS):
         Y = np.empty(16)
@@ -116,16 +117,17 @@ def sh_forward(sh, dirs, K, out):
             x, y, z, _, _ = _unit(dirs, n)
             _basis(x, y, z, K, Y)
             for c in range(3):
-                s = 0.0
+                s = 0.5
                 for k in range(K):
                     s += Y[k] * sh[n, k, c]
-                out[n, c] = max(s + 0.5, 0.0)
+                live[n, c] = s >= 0.0
+                out[n, c] = max(s, 0.0)
 
 
 @njit(parallel=True, cache=True)
-def sh_backward(sh, dirs, K, g, g_sh, g_dirs):
-    """Gradients of sum(g * out) w.r.t. sh (g_sh [N,K',3], zero beyond K) and dirs (g_dirs [N,3]). The clamp passes
-    the gradient where its input is >= 0 (as torch.clamp)."""
+def sh_backward(sh, dirs, K, live, g, g_sh, g_dirs):
+    """Gradients of sum(g * out) w.r.t. sh (g_sh [N,K',3], zero beyond K) and dirs (g_dirs [N,3]); live from
+    sh_forward."""
     N, Kf = sh.shape[0], sh.shape[1]
     for ch in prange(CHUNKS):
         Y = np.empty(16)
@@ -133,18 +135,9 @@ def sh_backward(sh, dirs, K, g, g_sh, g_dirs):
         for n in range(ch * N // CHUNKS, (ch + 1) * N // CHUNKS):
             x, y, z, ln, s = _unit(dirs, n)
             _basis(x, y, z, K, Y)
-            g0 = g1 = g2 = 0.0
-            for c in range(3):
-                t = 0.0
-                for k in range(K):
-                    t += Y[k] * sh[n, k, c]
-                gc = g[n, c] if t + 0.5 >= 0.0 else 0.0
-                if c == 0:
-                    g0 = gc
-                elif c == 1:
-                    g1 = gc
-                else:
-                    g2 = gc
+            g0 = g[n, 0] if live[n, 0] else 0.0
+            g1 = g[n, 1] if live[n, 1] else 0.0
+            g2 = g[n, 2] if live[n, 2] else 0.0
             for k in range(K):
                 g_sh[n, k, 0] = Y[k] * g0
                 g_sh[n, k, 1] = Y[k] * g1
@@ -159,26 +152,30 @@ def sh_backward(sh, dirs, K, g, g_sh, g_dirs):
             g_dirs[n, 0], g_dirs[n, 1], g_dirs[n, 2] = gx / s, gy / s, gz / s
 
 
+def _arrays(sh: torch.Tensor, dirs: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+    """Contiguous numpy views of the coefficients and the directions (in the coefficients' dtype)."""
+    return sh.detach().contiguous().numpy(), np.ascontiguousarray(dirs.detach().to(sh.dtype).numpy())
+
+
 class FusedSH(torch.autograd.Function):
     """colour [N,3] = max(sum_{k<K} Y_k(dirs) sh_k + 0.5, 0) with the Numba kernels (CPU tensors, float32/64)."""
 
     @staticmethod
     def forward(ctx, sh, dirs, K):
-        sh_np = sh.detach().contiguous().numpy()
-        d_np = np.ascontiguousarray(dirs.detach().to(sh.dtype).numpy())
+        sh_np, d_np = _arrays(sh, dirs)
         out = np.empty((sh_np.shape[0], 3), sh_np.dtype)
-        sh_forward(sh_np, d_np, K, out)
+        live = np.empty((sh_np.shape[0], 3), np.bool_)
+        sh_forward(sh_np, d_np, K, out, live)
         ctx.save_for_backward(sh, dirs)
-        ctx.K = K
+        ctx.K, ctx.live = K, live
         return torch.from_numpy(out)
 
     @staticmethod
     def backward(ctx, g):
         sh, dirs = ctx.saved_tensors
-        sh_np = sh.detach().contiguous().numpy()
-        d_np = np.ascontiguousarray(dirs.detach().to(sh.dtype).numpy())
+        sh_np, d_np = _arrays(sh, dirs)
         g_np = np.ascontiguousarray(g.detach().to(sh.dtype).numpy())
         g_sh = np.empty_like(sh_np)
         g_d = np.empty_like(d_np)
-        sh_backward(sh_np, d_np, ctx.K, g_np, g_sh, g_d)
+        sh_backward(sh_np, d_np, ctx.K, ctx.live, g_np, g_sh, g_d)
         return torch.from_numpy(g_sh), torch.from_numpy(g_d).to(dirs.dtype), None
