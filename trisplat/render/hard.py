@@ -13,8 +13,8 @@ from trisplat.render.inputs import validate
 from trisplat.render.types import RenderOutput
 from trisplat.scene.sh import eval_sh
 
-DEPTH_SLABS = 64  # front-to-back passes by nearest-vertex depth (more: better culling; 1M faces at 800x800, 2 threads:
-#                  z-buffer 81 ms at 8 slabs, 57 at 32, 53 at 128, with the faces gathered in order)
+DEPTH_SLABS = 64  # front-to-back passes by nearest-vertex depth (more: better culling; an ad-hoc timing at 1M faces,
+#                  800x800, 2 threads: z-buffer 81 ms at 8 slabs, 57 at 32, 53 at 128, faces copied in order)
 ORDER_CHUNKS = 64  # parallel chunks of the depth-order counting sort
 HIZ_BLOCK = 8  # pixels per side of the occlusion-culling blocks (each keeps the farthest depth it shows)
 BANDS_PER_THREAD = 1  # horizontal image bands per Numba thread (no atomics: a band owns its pixels)
