@@ -158,7 +158,7 @@ def test_initial_scene_on_captures(tmp_path):
     from trisplat.data import load_dataset
 
     lego = load_dataset(shared_data("lego"), downscale=8, cache_dir=tmp_path, prepare="lazy")
-    scene, report = initial_scene(lego, random_points=2000, sh_degree=2)
+    scene, report = initial_scene(lego, method="random", random_points=2000, sh_degree=2)
     assert report.method == "random" and scene.num_faces == 2000 and scene.sh_degree == 2
     centroids = scene.positions.numpy()[scene.faces.numpy()].mean(1)
     assert (centroids >= lego.bounds[0] - 1e-6).all() and (centroids <= lego.bounds[1] + 1e-6).all()

@@ -133,6 +133,32 @@ def test_minutes_plan_prices_supersampled_steps(tiny_scene, tmp_path):
     assert tr.clock.p(100) == pytest.approx(p) and tr.clock.total > 100
 
 
+def test_minutes_progress_follows_wall_time_when_steps_get_dearer(tiny_scene, tmp_path, monkeypatch):
+    """Steps 4x dearer after p = 0.3 (densification): progress must stay close to elapsed / budget, not run ahead
+    early and squeeze the end of the schedule (the hardening) into a few steps."""
+    import trisplat.train.trainer as trainer_mod
+
+    clock = {"t": 0.0}
+    monkeypatch.setattr(trainer_mod, "time", type("FakeTime", (), {"perf_counter": staticmethod(lambda: clock["t"])}))
+    tr = _trainer(tiny_scene, tmp_path / "mt", minutes=1.0, steps=10**6)
+    trace = []
+
+    def fake_step():
+        p = tr.clock.p(tr.step)
+        clock["t"] += 0.05 if p < 0.3 else 0.2
+        trace.append((clock["t"], p))
+        return {"ok": True, "loss": 0.1, "psnr": 20.0}
+
+    monkeypatch.setattr(tr, "train_step", fake_step)
+    monkeypatch.setattr(tr, "_strategy", lambda p_prev, p: None)
+    monkeypatch.setattr(tr, "evaluate", lambda p, max_views=None: 0.0)
+    monkeypatch.setattr(tr, "finish", lambda: {})
+    tr.train()
+    t, p = np.array(trace).T
+    assert 0.85 * 60 <= t[-1] <= 60.5  # the budget is used, not overrun
+    assert np.abs(p - t / t[-1]).max() < 0.1  # progress linear in wall time
+
+
 def test_nan_rolls_back_with_lower_learning_rate_then_gives_up(tiny_scene, tmp_path):
     from trisplat.train.trainer import MAX_ROLLBACKS, TrainingDiverged
 

@@ -83,7 +83,6 @@ class RawCapture:
     split: per-view 'train' / 'test' labels when the format has its own split, else None (every n-th held out).
     points / point_colors: float64 [P,3] capture frame and float32 [P,3] RGB in [0,1], or None.
     object_bounds: float64 [2,3] known content box in the capture frame (synthetic scenes), or None.
-    has_alpha: images carry an alpha channel to composite over the background.
     """
 
     format: str

@@ -273,6 +273,11 @@ def load_dataset(path, downscale: int = 1, **options) -> SceneData:
             )
         return to_float_rgb(img, background)
 
+    def load_alpha(i: int) -> np.ndarray | None:
+        ensure(i)
+        img = read_image(cameras[i].image_path)
+        return img[..., 3].astype(np.float32) / 255.0 if img.ndim == 3 and img.shape[2] == 4 else None
+
     def load_depth(i: int) -> np.ndarray:
         from trisplat.data.rgbd import read_depth_raw
 
@@ -317,4 +322,5 @@ def load_dataset(path, downscale: int = 1, **options) -> SceneData:
         bounds=bounds,
         options=used,
         depth_loader=LRUArrays(load_depth, budget) if raw.format == "rgbd" else None,
+        alpha_loader=load_alpha,
     )

@@ -26,6 +26,8 @@ class SceneData:
     options: the loader options actually used (plain JSON-able values): `load_dataset(root, **options)`
         reloads the same dataset.
     depth_loader: callable index -> float32 [H,W] depth in normalised units (RGB-D captures), or None.
+    alpha_loader: callable index -> float32 [H,W] alpha in [0,1] of an image with an alpha channel, or None for an
+        image without one (RGB); None when the capture cannot load alpha at all.
     """
 
     cameras: list[Camera]
@@ -42,6 +44,7 @@ class SceneData:
     bounds: np.ndarray | None = None
     options: dict = field(default_factory=dict)
     depth_loader: object | None = field(default=None, repr=False)
+    alpha_loader: object | None = field(default=None, repr=False)
 
     def load_image(self, index: int) -> np.ndarray:
         """Ground-truth image of camera `index`: float32 [H,W,3] in [0,1], composited over `background`."""
@@ -54,6 +57,12 @@ class SceneData:
         if self.depth_loader is None:
             raise RuntimeError(f"this SceneData ({self.format or 'unknown format'}) has no depth maps")
         return self.depth_loader(index)
+
+    def load_alpha(self, index: int) -> np.ndarray | None:
+        """Alpha of camera `index`'s image: float32 [H,W] in [0,1], or None when that image has no alpha channel."""
+        if self.alpha_loader is None:
+            return None
+        return self.alpha_loader(index)
 
     @property
     def scale(self) -> float:

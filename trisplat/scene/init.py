@@ -1,4 +1,5 @@
-"""Initial triangles from a capture: Delaunay faces of the sparse points, a per-point soup, or random soup."""
+"""Initial triangles from a capture: Delaunay faces of the sparse points, a per-point soup, a soup on the visual hull
+of the silhouettes, or random soup."""
 
 from __future__ import annotations
 
@@ -16,6 +17,8 @@ FLAT_RELATIVE_TOL = 1e-6  # smallest / largest singular value of the centred poi
 JITTER_RELATIVE = 1e-4  # jitter amplitude for flat sets, x bounding-box diagonal
 MIN_SOUP_RELATIVE_SIZE = 1e-4  # smallest soup triangle radius, x bounding-box diagonal (isolated duplicates)
 DEFAULT_RANDOM_POINTS = 10_000
+HULL_RESOLUTION = 128  # voxels along the longest side of the box carved by the silhouettes
+HULL_MAX_VIEWS = 100  # silhouettes used for carving (evenly spread over the training views)
 QHULL_OPTIONS = "Qbb Qc Qz Q12"  # scipy's defaults for 3-D Delaunay
 QHULL_JOGGLE_OPTIONS = "QJ Qbb"  # retry: joggled input always yields simplices
 
@@ -52,14 +55,16 @@ class InitReport:
 
 
 def _clean(points, colors, report: InitReport, max_points: int | None, rng: np.random.Generator):
-    """Drop non-finite rows, merge duplicates (first colour kept), subsample to max_points."""
+    """Drop non-finite rows, merge duplicates (first colour kept), subsample to max_points. Returns the points, their
+    colours and the input rows they came from."""
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    rows = np.arange(len(pts))
     cols = np.full((len(pts), 3), 0.5) if colors is None else np.asarray(colors, dtype=np.float64).reshape(-1, 3)
     if len(cols) != len(pts):
         raise ValueError(f"points [{len(pts)},3] and colors [{len(cols)},3] differ in length")
     ok = np.isfinite(pts).all(1) & np.isfinite(cols).all(1)
     report.nonfinite_removed = int((~ok).sum())
-    pts, cols = pts[ok], np.clip(cols[ok], 0.0, 1.0)
+    pts, cols, rows = pts[ok], np.clip(cols[ok], 0.0, 1.0), rows[ok]
     if len(pts):
         diag = float(np.linalg.norm(pts.max(0) - pts.min(0)))
         tol = DEDUP_RELATIVE_TOL * diag if diag > 0 else 1.0
@@ -67,12 +72,12 @@ def _clean(points, colors, report: InitReport, max_points: int | None, rng: np.r
         _, first = np.unique(keys, axis=0, return_index=True)
         first.sort()
         report.duplicates_removed = len(pts) - len(first)
-        pts, cols = pts[first], cols[first]
+        pts, cols, rows = pts[first], cols[first], rows[first]
     if max_points is not None and len(pts) > max_points:
         report.subsampled_from = len(pts)
         keep = np.sort(rng.choice(len(pts), size=max_points, replace=False))
-        pts, cols = pts[keep], cols[keep]
-    return pts, cols
+        pts, cols, rows = pts[keep], cols[keep], rows[keep]
+    return pts, cols, rows
 
 
 def _is_flat(pts: np.ndarray) -> bool:
@@ -115,7 +120,7 @@ def init_delaunay(
     """
     rng = np.random.default_rng(seed)
     report = InitReport("delaunay", input_points=int(np.asarray(points).reshape(-1, 3).shape[0]), vertices=0, faces=0)
-    pts, cols = _clean(points, colors, report, max_points, rng)
+    pts, cols, _ = _clean(points, colors, report, max_points, rng)
     if len(pts) < 4:
         scene, sub = init_soup(pts, cols, seed=seed, opacity=opacity, sh_degree=sh_degree)
         sub.method = "delaunay"
@@ -165,6 +170,20 @@ def _random_rotations(n: int, rng: np.random.Generator) -> np.ndarray:
     )
 
 
+def _tangent_rotations(normals: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Rotations [n,3,3] taking the template plane z = 0 to the plane with the given unit normals, with a random
+    in-plane angle."""
+    n = normals / np.linalg.norm(normals, axis=1, keepdims=True)
+    helper = np.where((np.abs(n[:, 0]) < 0.9)[:, None], np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0]))
+    a = np.cross(n, helper)
+    a /= np.linalg.norm(a, axis=1, keepdims=True)
+    b = np.cross(n, a)
+    theta = rng.random(len(n))[:, None] * 2 * np.pi
+    t1 = np.cos(theta) * a + np.sin(theta) * b
+    t2 = np.cross(n, t1)
+    return np.stack([t1, t2, n], axis=2)  # columns: template x, y, z -> t1, t2, normal
+
+
 def soup_sizes(pts: np.ndarray, factor: float = SOUP_SIZE_FACTOR) -> np.ndarray:
     """Per-point triangle circumradius: `factor` x RMS distance to the SOUP_NEIGHBOURS nearest others."""
     from scipy.spatial import cKDTree
@@ -189,18 +208,27 @@ def init_soup(
     sh_degree: int = 3,
     max_points: int | None = None,
     size_factor: float = SOUP_SIZE_FACTOR,
+    normals=None,
 ) -> tuple[TriangleScene, InitReport]:
     """MeshSplatting / TS v1 soup: one randomly oriented equilateral triangle per point (3 private vertices),
-    centred on the point, circumradius size_factor (2.23) x the RMS distance to its 3 nearest neighbours."""
+    centred on the point, circumradius size_factor (2.23) x the RMS distance to its 3 nearest neighbours.
+    With `normals` [P,3], each triangle lies in the plane through its point with that normal instead."""
     rng = rng if rng is not None else np.random.default_rng(seed)
     report = InitReport("soup", input_points=int(np.asarray(points).reshape(-1, 3).shape[0]), vertices=0, faces=0)
-    pts, cols = _clean(points, colors, report, max_points, rng)
+    pts, cols, rows = _clean(points, colors, report, max_points, rng)
+    if normals is not None:
+        normals = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+        if len(normals) != report.input_points:
+            raise ValueError(f"normals [{len(normals)},3] and points [{report.input_points},3] differ in length")
+        normals = normals[rows]
+        bad = ~(np.isfinite(normals).all(1) & (np.linalg.norm(normals, axis=1) > 0))
+        normals[bad] = rng.normal(size=(int(bad.sum()), 3))  # unusable normal: a random orientation
     n = len(pts)
     if n == 0:
         raise ValueError("cannot initialise triangles from an empty point set (no finite points)")
     ang = np.array([0.0, 2 * np.pi / 3, 4 * np.pi / 3])
     template = np.stack([np.cos(ang), np.sin(ang), np.zeros(3)], axis=1)  # unit circumradius, plane z = 0
-    R = _random_rotations(n, rng)
+    R = _random_rotations(n, rng) if normals is None else _tangent_rotations(normals, rng)
     verts = pts[:, None, :] + soup_sizes(pts, size_factor)[:, None, None] * np.einsum("nij,kj->nki", R, template)
     faces = np.arange(3 * n, dtype=np.int32).reshape(n, 3)
     scene = TriangleScene.from_rgb(
@@ -240,6 +268,57 @@ def init_random(
     return scene, report
 
 
+def init_hull(
+    data,
+    n: int = DEFAULT_RANDOM_POINTS,
+    seed: int = 0,
+    opacity: float = TSPLUS_OPACITY,
+    sh_degree: int = 3,
+    size_factor: float = SOUP_SIZE_FACTOR,
+    resolution: int = HULL_RESOLUTION,
+) -> tuple[TriangleScene, InitReport]:
+    """Captures with alpha masks and no points: carve the visual hull of the training silhouettes inside
+    `data.bounds`, then one triangle per point sampled on its surface, lying in the surface's tangent plane, with the
+    mean colour the training images show there. Raises ValueError when no training image has alpha or the carving
+    leaves (almost) nothing, which means the masks and the poses disagree."""
+    from trisplat.scene import hull as vh
+
+    if int(n) < 1:
+        raise ValueError(f"hull initialisation needs n >= 1 points, got {n}")
+    train = np.asarray(data.train_indices)
+    if len(train) > HULL_MAX_VIEWS:
+        train = train[np.linspace(0, len(train) - 1, HULL_MAX_VIEWS).round().astype(int)]
+    cams = [data.cameras[int(i)] for i in train]
+    masks = [data.load_alpha(int(i)) for i in train]
+    used = sum(m is not None for m in masks)
+    if used == 0:
+        raise ValueError("hull initialisation needs images with an alpha channel; this capture's training images "
+                         "have none (use --init random or delaunay)")
+    bounds = _content_box(data)
+    grid = vh.carve(cams, masks, bounds, resolution)
+    kept = int(grid.occupied.sum())
+    if kept < vh.MIN_KEPT_VOXELS:
+        raise ValueError(f"the visual hull of {used} silhouettes keeps only {kept} of {grid.occupied.size} voxels: "
+                         "the alpha masks and the camera poses disagree (wrong poses, or masks of another scene)")
+    rng = np.random.default_rng(seed)
+    pts, normals = vh.surface_samples(grid, int(n), rng)
+    images = [data.load_image(int(i)) if m is not None else None for i, m in zip(train, masks)]
+    cols = vh.mean_colors(cams, images, masks, pts)
+    scene, report = init_soup(pts, cols, rng=rng, opacity=opacity, sh_degree=sh_degree, size_factor=size_factor,
+                              normals=normals)
+    report.method = "hull"
+    report.notes.append(f"visual hull of {grid.views} silhouettes: {kept} of {grid.occupied.size} voxels "
+                        f"({resolution} along the longest side)")
+    return scene, report
+
+
+def _content_box(data) -> np.ndarray:
+    if data.bounds is not None:
+        return np.asarray(data.bounds, dtype=np.float64)
+    c = np.stack([cam.center for cam in data.cameras])
+    return np.stack([c.min(0), c.max(0)])
+
+
 def initial_scene(
     data,
     method: str = "auto",
@@ -250,23 +329,28 @@ def initial_scene(
     random_points: int = DEFAULT_RANDOM_POINTS,
     random_size_factor: float = SOUP_SIZE_FACTOR,
 ) -> tuple[TriangleScene, InitReport]:
-    """Initial triangles for a SceneData: 'auto' = Delaunay of its points, or random points in `data.bounds`
-    when it has none; or force 'delaunay' | 'soup' | 'random'."""
-    if method not in ("auto", "delaunay", "soup", "random"):
-        raise ValueError(f"unknown initialisation method {method!r} (auto, delaunay, soup, random)")
+    """Initial triangles for a SceneData: 'auto' = Delaunay of its points; without points, the visual hull of the
+    silhouettes when the training images have alpha, else random points in `data.bounds`; or force
+    'delaunay' | 'soup' | 'hull' | 'random'."""
+    if method not in ("auto", "delaunay", "soup", "hull", "random"):
+        raise ValueError(f"unknown initialisation method {method!r} (auto, delaunay, soup, hull, random)")
     has_points = data.points is not None and len(data.points) > 0
     if method in ("delaunay", "soup") and not has_points:
         raise ValueError(f"initialisation {method!r} needs points, but this {data.format} capture has none")
     if method == "auto":
-        method = "delaunay" if has_points else "random"
+        if has_points:
+            method = "delaunay"
+        elif len(data.train_indices) and data.load_alpha(int(data.train_indices[0])) is not None:
+            method = "hull"
+        else:
+            method = "random"
+    if method == "hull":
+        return init_hull(data, random_points, seed, opacity, sh_degree, random_size_factor)
     if method == "delaunay":
         return init_delaunay(data.points, data.point_colors, opacity, sh_degree, max_points, seed)
     if method == "soup":
         return init_soup(
             data.points, data.point_colors, seed=seed, opacity=opacity, sh_degree=sh_degree, max_points=max_points
         )
-    bounds = data.bounds
-    if bounds is None:
-        c = np.stack([cam.center for cam in data.cameras])
-        bounds = np.stack([c.min(0), c.max(0)])
+    bounds = _content_box(data)
     return init_random(bounds[0], bounds[1], random_points, seed, opacity, sh_degree, random_size_factor)
