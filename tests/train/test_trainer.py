@@ -133,6 +133,16 @@ def test_minutes_plan_prices_supersampled_steps(tiny_scene, tmp_path):
     assert tr.clock.p(100) == pytest.approx(p) and tr.clock.total > 100
 
 
+def test_trainer_initialises_a_masked_capture_on_its_visual_hull(tiny_scene, tmp_path):
+    from trisplat.data import load_dataset
+
+    cfg = make_config("fast", **{**TINY, "init_random_points": 300})
+    tr = Trainer(cfg, load_dataset(tiny_scene), tmp_path / "hull", show_progress=False)
+    first = json.loads((tmp_path / "hull" / layout.HISTORY).read_text().splitlines()[0])
+    assert tr.init_report.method == "hull" and first == {"init": tr.init_report.summary()}
+    assert tr.ts.num_faces == 300
+
+
 def test_minutes_progress_follows_wall_time_when_steps_get_dearer(tiny_scene, tmp_path, monkeypatch):
     """Steps 4x dearer after p = 0.3 (densification): progress must stay close to elapsed / budget, not run ahead
     early and squeeze the end of the schedule (the hardening) into a few steps."""

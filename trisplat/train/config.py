@@ -27,11 +27,13 @@ class TrainConfig:
     """For captures without splits, every n-th image is held out for testing."""
     # --- initialisation
     init: str = "auto"
-    """'auto' | 'delaunay' (TS+) | 'soup' (MeshSplatting) | 'random' (synthetic scenes without points)."""
+    """'auto' | 'delaunay' (TS+) | 'soup' (MeshSplatting) | 'hull' (surface of the visual hull of the alpha
+    silhouettes) | 'random' (points in the scene box). auto: delaunay with sparse points, else hull when the training
+    images have alpha, else random."""
     init_max_points: int = 50_000
     """Subsample the sparse points to at most this many before initialisation."""
     init_random_points: int = 10_000
-    """Triangles for random initialisation (scenes without sparse points)."""
+    """Triangles for the hull and random initialisations (scenes without sparse points)."""
     init_random_size: float = 2.23
     """Random initialisation: triangle circumradius / RMS distance to the 3 nearest random points."""
     init_opacity: float = 0.28

@@ -74,6 +74,7 @@ class Trainer:
         self.wall_s = 0.0
         self.connected = False
         self._last_prune = -(10**9)
+        self.init_report = None  # what the initialisation did (when this trainer made the initial triangles)
         self.run_dir.mkdir(parents=True, exist_ok=True)
         if resume:
             ckpt = load_checkpoint(self.run_dir / layout.CHECKPOINT)
@@ -93,6 +94,10 @@ class Trainer:
             self.clock = schedules.Clock(total=cfg.steps)
             self._write_config(data_options or {}, data_path)
             (self.run_dir / layout.HISTORY).write_text("")
+            if self.init_report is not None:
+                self._log({"init": self.init_report.summary()})  # no "step": readers of the curves skip it
+                if show_progress:
+                    print(f"initialisation: {self.init_report.summary()}", file=sys.stderr, flush=True)
         self._last_good = checkpoint_state(self.ts, self.step, self.clock.total, self.generator, self._extra())
 
     # ----------------------------------------------------------------------------------------------- bookkeeping
