@@ -295,7 +295,7 @@ class Trainer:
         # --minutes: plan the step count after a short warm-up, then re-plan every few steps as the scene grows and
         # shrinks. Frequent re-plans keep progress close to linear in wall time: with a few re-plans, a step rate
         # that changed since the last one squeezed the rest of the schedule (measured: the whole hardening,
-        # p 0.5 -> 1, in the last fifth of a lego run), which costs up to 2 dB.
+        # p 0.5 -> 1, in the last fifth of a lego trial; docs/benchmarks.md).
         planned = not cfg.minutes or self.step >= MINUTES_WARMUP_STEPS
         window: list[float] = []
         bar = tqdm(total=self.clock.total, initial=self.step, disable=not self.show_progress, unit="step",
