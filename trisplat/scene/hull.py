@@ -42,6 +42,14 @@ def _project(cam, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return u, v, z
 
 
+def _pixels(cam, pts: np.ndarray, near: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Pixel row and column of each point, whether it lands in the image in front of the camera (z > near), and z."""
+    u, v, z = _project(cam, pts)
+    col, row = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
+    inside = (z > near) & (col >= 0) & (col < cam.width) & (row >= 0) & (row < cam.height)
+    return row, col, inside, z
+
+
 def carve(cameras, masks, bounds, resolution: int = 128, near: float = 1e-3) -> VisualHull:
     """Voxels of `bounds` (float [2,3]) that project inside every silhouette.
 
@@ -53,34 +61,31 @@ def carve(cameras, masks, bounds, resolution: int = 128, near: float = 1e-3) -> 
     if not (np.isfinite(lo).all() and np.isfinite(hi).all() and (hi > lo).all()):
         raise ValueError(f"visual hull needs a finite box with max > min, got {lo} .. {hi}")
     voxel = float((hi - lo).max()) / resolution
-    dims = np.maximum(np.ceil((hi - lo) / voxel).astype(int), 1)
-    origin = lo
-    alive = np.ones(tuple(dims), dtype=bool)
-    ijk = np.argwhere(alive)
-    centers = origin + (ijk + 0.5) * voxel
+    dims = tuple(np.maximum(np.ceil((hi - lo) / voxel).astype(int), 1))
+    ijk = np.argwhere(np.ones(dims, dtype=bool))
+    centers = lo + (ijk + 0.5) * voxel
     views = 0
     for cam, mask in zip(cameras, masks):
         if mask is None:
             continue
-        m = np.asarray(mask) >= MASK_THRESHOLD if np.asarray(mask).dtype != bool else np.asarray(mask)
+        m = np.asarray(mask)
+        m = m if m.dtype == bool else m >= MASK_THRESHOLD
         if m.shape != (cam.height, cam.width):
             raise ValueError(f"mask of {cam.name} is {m.shape[1]}x{m.shape[0]}, camera is {cam.width}x{cam.height}")
-        u, v, z = _project(cam, centers)
+        row, col, inside, z = _pixels(cam, centers, near)
         front = z > near
         if not front.any():
             continue
         radius_px = int(np.ceil(0.87 * voxel * max(cam.K[0, 0], cam.K[1, 1]) / max(float(z[front].min()), near)))
         if radius_px > 0:
             m = ndimage.binary_dilation(m, iterations=min(radius_px, 16))
-        ui, vi = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
-        inside = front & (ui >= 0) & (ui < cam.width) & (vi >= 0) & (vi < cam.height)
         keep = np.ones(len(centers), dtype=bool)
-        keep[inside] = m[vi[inside], ui[inside]]
+        keep[inside] = m[row[inside], col[inside]]
         ijk, centers = ijk[keep], centers[keep]
         views += 1
-    occupied = np.zeros(tuple(dims), dtype=bool)
+    occupied = np.zeros(dims, dtype=bool)
     occupied[tuple(ijk.T)] = True
-    return VisualHull(occupied, origin, voxel, views)
+    return VisualHull(occupied, lo, voxel, views)
 
 
 def surface_samples(hull: VisualHull, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
@@ -112,11 +117,9 @@ def mean_colors(cameras, images, masks, pts: np.ndarray) -> np.ndarray:
     for cam, img, mask in zip(cameras, images, masks):
         if mask is None:
             continue
-        u, v, z = _project(cam, pts)
-        ui, vi = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
-        ok = (z > 0) & (ui >= 0) & (ui < cam.width) & (vi >= 0) & (vi < cam.height)
-        ok[ok] = np.asarray(mask)[vi[ok], ui[ok]] >= MASK_THRESHOLD
-        acc[ok] += np.asarray(img)[vi[ok], ui[ok], :3]
+        row, col, ok, _ = _pixels(cam, pts, 0.0)
+        ok[ok] = np.asarray(mask)[row[ok], col[ok]] >= MASK_THRESHOLD
+        acc[ok] += np.asarray(img)[row[ok], col[ok], :3]
         cnt[ok] += 1
     out = np.full((len(pts), 3), 0.5)
     seen = cnt > 0
