@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 from render_scenes import mesh_scene, random_scene
 
@@ -98,6 +99,51 @@ def test_hard_deep_scene_matches_brute_force():
     winners = np.zeros(faces.shape[0])
     winners[out.face_id.numpy()[out.face_id.numpy() >= 0]] = 1
     np.testing.assert_array_equal(out.max_weight.numpy(), winners)
+
+
+def _edge_quad(u_edge: float):
+    """A constant-colour quad at depth 2 covering every pixel right of the vertical screen line u = u_edge (32x32
+    camera, f = 20, principal point at the centre)."""
+    f, c, z = 20.0, 16.0, 2.0
+    x0, x1, y0, y1 = (u_edge - c) * z / f, (40 - c) * z / f, (-10 - c) * z / f, (42 - c) * z / f
+    pos = torch.tensor([[x0, y0, z], [x1, y0, z], [x1, y1, z], [x0, y1, z]])
+    faces = torch.tensor([[0, 1, 2], [0, 2, 3]], dtype=torch.int32)
+    col = torch.tensor([[0.2, 0.4, 0.6]]).repeat(4, 1)
+    K = torch.tensor([[f, 0, c], [0, f, c], [0, 0, 1.0]])
+    return pos, faces, col, torch.eye(4), K
+
+
+def test_supersampled_hard_render_averages_the_samples_of_each_pixel():
+    """An edge at u = 10.3 crosses pixel column 10: its centre (10.5) is covered at s = 1, 1 of its 2 sample
+    columns (centres 10.25, 10.75) at s = 2, 3 of 4 (10.125 ... 10.875) at s = 4; the pixel is that share of the
+    face's colour over the background."""
+    pos, faces, col, w2c, K = _edge_quad(10.3)
+    bg = torch.tensor([1.0, 1.0, 1.0])
+    for s, share in ((1, 1.0), (2, 0.5), (4, 0.75)):
+        out = rasterize_hard(pos, faces, col, w2c, K, 32, 32, bg, supersample=s)
+        torch.testing.assert_close(out.alpha[:, 10], torch.full((32,), share))
+        torch.testing.assert_close(out.alpha[:, 11:], torch.ones(32, 21))
+        torch.testing.assert_close(out.alpha[:, :10], torch.zeros(32, 10))
+        torch.testing.assert_close(out.rgb[:, 10], (share * col[0] + (1 - share) * bg).expand(32, 3))
+        assert out.rgb.shape == (32, 32, 3) and out.face_id.shape == (32, 32)
+        torch.testing.assert_close(out.depth[:, 11:], torch.full((32, 21), 2.0))
+
+
+def test_supersampled_hard_render_is_the_pooled_brute_force_of_the_sample_grid():
+    pos, faces, col, _, w2c, K = random_scene(5, 40)
+    s = 2
+    out = rasterize_hard(pos, faces, col, w2c, K, 40, 32, supersample=s)
+    K2 = K.clone()
+    K2[:2] *= s
+    fid, rgb, _ = brute_force(pos.numpy(), faces.numpy(), col.numpy(), w2c.numpy(), K2.numpy(), 40 * s, 32 * s)
+    rgb[fid < 0] = 0.0  # black background, as rasterize_hard's default
+    pooled = rgb.reshape(32, s, 40, s, 3).mean((1, 3))
+    close = np.abs(out.rgb.numpy() - pooled).max(-1) < 1e-4
+    assert close.mean() >= 1 - 4 * BOUNDARY_FRACTION  # a pixel holds 4 samples that may sit on an edge
+    assert (fid >= 0).mean() > 0.3
+    np.testing.assert_allclose(out.alpha.numpy(), (fid >= 0).reshape(32, s, 40, s).mean((1, 3)), atol=0.26)
+    with pytest.raises(ValueError, match="supersample"):
+        rasterize_hard(pos, faces, col, w2c, K, 40, 32, supersample=5)
 
 
 def test_depth_order_is_a_stable_sort_by_slab_with_gathered_rows():

@@ -58,6 +58,10 @@ def test_loss_falls_and_run_is_complete(tiny_scene, tmp_path):
     assert np.mean(losses[12:24]) < 0.85 * np.mean(losses[:8])  # falls while soft
     m = json.loads((run_dir / layout.METRICS).read_text())
     assert m["psnr"] > psnr_before + 1.0  # the final opaque mesh beats the initial soft triangles
+    # scored with 2x2 samples per pixel (the fast preset's default), and with one on record
+    assert m["supersample"] == 2 and m["psnr_1spp"] != m["psnr"]
+    one = json.loads((run_dir / "eval_test_1spp" / "metrics.json").read_text())
+    assert one["supersample"] == 1 and one["psnr"] == pytest.approx(m["psnr_1spp"])
     # the run directory holds everything it promises
     for name in (layout.MODEL, "mesh.ply", "mesh.obj", "mesh.glb", layout.METRICS, layout.CONFIG):
         assert (run_dir / name).exists(), name

@@ -55,6 +55,7 @@ def write_page(out: Path, run_dir: Path) -> Path:
         gt = scene_test / r.name
         rows.append(f"<tr><td>{html.escape(r.stem)}</td><td><img src='{gt.relative_to(out)}'></td>"
                     f"<td><img src='{r.relative_to(out)}'></td></tr>")
+    ss = metrics.get("supersample", 1)
     fmt = lambda v, d: "-" if v is None else f"{v:.{d}f}"  # noqa: E731
     files = " ".join(f"<a href='run/mesh.{s}'>mesh.{s}</a>" for s in ("ply", "obj", "glb"))
     page = f"""<!doctype html><html><head><meta charset='utf-8'><title>trisplat demo</title>
@@ -62,9 +63,11 @@ def write_page(out: Path, run_dir: Path) -> Path:
 td{{padding:4px;text-align:center}}</style></head><body>
 <h1>trisplat demo</h1>
 <p>A procedural scene rendered by trimesh's ray caster (ground truth), reconstructed as an opaque triangle mesh by
-differentiable triangle splatting, shown here with an ordinary z-buffer render of the final mesh.</p>
+differentiable triangle splatting, shown here with an ordinary z-buffer render of the final mesh
+({ss}x{ss} samples per pixel, as the ground truth).</p>
 <p>Test views: PSNR {fmt(metrics.get('psnr'), 2)} dB, SSIM {fmt(metrics.get('ssim'), 3)},
-LPIPS {fmt(metrics.get('lpips'), 3)} (soft render PSNR {fmt(metrics.get('soft_psnr'), 2)} dB);
+LPIPS {fmt(metrics.get('lpips'), 3)} (soft render PSNR {fmt(metrics.get('soft_psnr'), 2)} dB; one sample per pixel:
+PSNR {fmt(metrics.get('psnr_1spp', metrics.get('psnr')), 2)} dB);
 {metrics['faces']} faces, {metrics['vertices']} vertices; trained {metrics['steps']} steps in
 {metrics['wall_s'] / 60:.1f} min.</p>
 <p>Mesh files: {files} &middot; full report: <a href='run/eval_test/report.html'>run/eval_test/report.html</a>

@@ -27,6 +27,8 @@ class EvalConfig:
     """evaluate only the first N views of the split (a quick look)"""
     report: bool = True
     """write report.html (with pictures) next to metrics.json"""
+    supersample: int | None = None
+    """samples per pixel side (anti-aliasing, 1-4; default: the run's eval_supersample, 1 for older runs)"""
 
 
 def main(argv: list[str]) -> int:
@@ -35,7 +37,7 @@ def main(argv: list[str]) -> int:
     from trisplat.eval.views import evaluate_run
 
     m = evaluate_run(cfg.run, cfg.split, cfg.mode, out_dir=cfg.out, lpips_weights=cfg.lpips_weights,
-                     max_views=cfg.max_views, report=cfg.report)  # fmt: skip
+                     max_views=cfg.max_views, report=cfg.report, supersample=cfg.supersample)  # fmt: skip
     summary = {k: v for k, v in m.to_dict().items() if k != "views"}
     print(json.dumps(json_safe(summary), indent=2))
     out = cfg.out or cfg.run / (f"eval_{cfg.split}" + ("_soft" if cfg.mode == "soft" else ""))

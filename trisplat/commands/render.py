@@ -21,11 +21,13 @@ class RenderArgs:
     split: Literal["train", "test", "all"] = "test"
     mode: Literal["hard", "soft"] = "hard"
     """hard: z-buffer render of the final mesh; soft: the splatting renderer at the final sigma."""
+    supersample: int | None = None
+    """samples per pixel side (anti-aliasing, 1-4; default: the run's eval_supersample, what its metrics used)"""
     force: bool = False
 
 
 def render_split(args: RenderArgs) -> list[Path]:
-    from trisplat.eval.views import render_view, soft_sigma
+    from trisplat.eval.views import eval_supersample, render_view, soft_sigma
     from trisplat.run import open_run
     from trisplat.eval.report import write_png
     from trisplat.train.outputs import image_stem
@@ -34,6 +36,7 @@ def render_split(args: RenderArgs) -> list[Path]:
     scene, _ = run.load_model()
     data = run.load_scene_data()
     sigma = soft_sigma(run) if args.mode == "soft" else None
+    ss = eval_supersample(run) if args.supersample is None else args.supersample
     idx = {"train": data.train_indices, "test": data.test_indices, "all": range(len(data.cameras))}[args.split]
     args.out.mkdir(parents=True, exist_ok=True)
     written = []
@@ -42,7 +45,7 @@ def render_split(args: RenderArgs) -> list[Path]:
         path = args.out / f"{image_stem(cam, int(i))}.png"
         if path.exists() and not args.force:
             raise FileExistsError(f"{path} exists; pass --force to overwrite")
-        write_png(render_view(scene, cam, args.mode, data.background, sigma), path)
+        write_png(render_view(scene, cam, args.mode, data.background, sigma, supersample=ss), path)
         written.append(path)
     return written
 

@@ -28,12 +28,20 @@ def soft_sigma(run) -> float:
                      "in config.json)")  # fmt: skip
 
 
-def render_view(scene, camera, mode: str, background, sigma: float | None = None, options: dict | None = None):
+def eval_supersample(run) -> int:
+    """Samples per pixel side a run is scored with (its config's eval_supersample; runs from before that setting
+    existed were scored with one sample per pixel)."""
+    return int(run.config.get("eval_supersample", 1))
+
+
+def render_view(scene, camera, mode: str, background, sigma: float | None = None, options: dict | None = None,
+                supersample: int = 1):
     """Render one camera of a TriangleScene: float32 numpy [H,W,3] in [0,1].
 
     hard: the opaque z-buffer (rasterize_hard); soft: the training renderer at `sigma` with the vertices' opacities.
     Both evaluate the SH colour of each vertex along its view direction. options: RenderOptions fields the run
-    trained with (near, tile_size, backend); the hard renderer takes only `near` from them.
+    trained with (near, tile_size, backend); the hard renderer takes only `near` from them. supersample: each
+    pixel is the mean of s x s samples (anti-aliasing; 1 = one sample at the pixel centre).
     """
     from trisplat import render
 
@@ -46,10 +54,11 @@ def render_view(scene, camera, mode: str, background, sigma: float | None = None
         if mode == "hard":
             near = {"near": options["near"]} if "near" in options else {}
             out = render.rasterize_hard(scene.positions, faces, scene.sh, w2c, K, camera.width, camera.height, bg,
-                                        **near)  # fmt: skip
+                                        supersample=supersample, **near)  # fmt: skip
         elif mode == "soft":
             if sigma is None:
                 raise ValueError("soft rendering needs sigma")
+            options["supersample"] = supersample
             out = render.rasterize(scene.positions, faces, scene.sh, scene.opacities(), sigma, w2c, K, camera.width,
                                    camera.height, background=bg, **options)  # fmt: skip
         else:
@@ -71,12 +80,14 @@ def evaluate_run(
     max_views: int | None = None,
     report: bool = True,
     show_progress: bool = True,
+    supersample: int | None = None,
 ) -> SplitMetrics:
     """Render `split` of the run at run_dir, score each view (PSNR, SSIM, LPIPS) and write
     out_dir/metrics.json and out_dir/report.html (out_dir defaults to RUN/eval_<split>; soft mode adds _soft).
 
     LPIPS is None (with a note in the metrics) when the weights file is missing. max_views: evaluate only the first
-    N views of the split (quick looks; the metrics say so).
+    N views of the split (quick looks; the metrics say so). supersample: samples per pixel side (default: the
+    run's eval_supersample, eval_supersample(run)); the metrics record it.
     """
     from trisplat.eval.lpips import load_lpips, lpips
     from trisplat.run import open_run
@@ -96,6 +107,7 @@ def evaluate_run(
         indices = indices[:max_views]
     sigma = soft_sigma(run) if mode == "soft" else None
     options = _render_options(run.config)
+    ss = eval_supersample(run) if supersample is None else int(supersample)
 
     lpips_note = None
     try:
@@ -111,7 +123,7 @@ def evaluate_run(
     for k, i in enumerate(bar):
         cam = data.cameras[i]
         t0 = time.perf_counter()
-        rgb = render_view(scene, cam, mode, data.background, sigma, options)
+        rgb = render_view(scene, cam, mode, data.background, sigma, options, ss)
         render_s += time.perf_counter() - t0
         gt = np.asarray(data.load_image(i), dtype=np.float32)
         if gt.shape != rgb.shape:
@@ -126,7 +138,7 @@ def evaluate_run(
     history = run.history()
     extra = {"run": str(run.path), "step": run.state.get("step"), "finished": run.state.get("finished"),
              "train_wall_s": _last(history, "wall_s"), "faces": scene.num_faces,
-             "vertices": scene.num_vertices}  # fmt: skip
+             "vertices": scene.num_vertices, "supersample": ss}  # fmt: skip
     if sigma is not None:
         extra["sigma"] = sigma
     if max_views is not None:
@@ -137,7 +149,7 @@ def evaluate_run(
     if report:
         write_report(out, metrics, images, history=history,
                      mesh_stats=mesh_statistics_or_none(scene), config=run.config,
-                     title=f"trisplat: {run.path.name} ({split}, {mode})")  # fmt: skip
+                     title=f"trisplat: {run.path.name} ({split}, {mode}, {ss}x{ss} samples per pixel)")  # fmt: skip
     return metrics
 
 

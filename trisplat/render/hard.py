@@ -9,8 +9,8 @@ import numpy as np
 import torch
 from numba import njit, prange
 
-from trisplat.render.inputs import validate
-from trisplat.render.types import RenderOutput
+from trisplat.render.inputs import SUPERSAMPLE_FACTORS, validate
+from trisplat.render.types import RenderOutput, downsample
 from trisplat.scene.sh import eval_sh
 
 DEPTH_SLABS = 64  # front-to-back passes by nearest-vertex depth (more: better culling; an ad-hoc timing at 1M faces,
@@ -298,18 +298,25 @@ def hard_resolve(uvz, order, pos, faces, w2c, colors, fid, width, height, perspe
 
 
 def rasterize_hard(positions, faces, colors, world_to_camera, K, width, height, background=None, near: float = 0.01,
-                   perspective_correct: bool = False) -> RenderOutput:
+                   perspective_correct: bool = False, supersample: int = 1) -> RenderOutput:
     """Opaque z-buffer render: each pixel centre shows the nearest face covering it (no gradients).
+
+    supersample s > 1: each pixel is the mean of an s x s grid of such samples (supersampling anti-aliasing, the
+    box filter of the soft renderer's `supersample`; render.types.downsample says what each output becomes).
 
     positions [V,3], faces int [F,3], colors [V,3] RGB or [V,(d+1)^2,3] SH; world_to_camera [4,4] or [B,4,4];
     K [3,3] or [B,3,3]; near: faces with a vertex nearer than this (scene units) are culled. Colours are interpolated
-    with screen-space barycentrics (perspective-correct on request). Returns RenderOutput: rgb, alpha (0/1), depth
-    (view depth, 0 where empty), normal (camera-facing unit face normal, camera frame), face_id (-1 where empty),
-    max_weight (1 for faces that win at least one pixel), pairs_evaluated (pixel/face depth tests).
+    with screen-space barycentrics (perspective-correct on request). Returns RenderOutput: rgb, alpha (0/1; the
+    covered share of the samples when supersampled), depth (view depth, 0 where empty), normal (camera-facing unit
+    face normal, camera frame), face_id (-1 where empty), max_weight (1 for faces that win at least one sample),
+    pairs_evaluated (sample/face depth tests).
     """
     vi = validate(positions, faces, colors, None, 1.0, world_to_camera, K, width, height, background)
     if not near > 0:
         raise ValueError(f"near must be > 0, got {near}")
+    if supersample not in SUPERSAMPLE_FACTORS:
+        raise ValueError(f"supersample must be one of {SUPERSAMPLE_FACTORS}, got {supersample!r}")
+    ss = supersample
     outs = []
     with torch.no_grad():
         pos = vi.positions.detach().to(torch.float32).cpu().numpy()
@@ -322,7 +329,8 @@ def rasterize_hard(positions, faces, colors, world_to_camera, K, width, height, 
                 R, t = w2c[:3, :3], w2c[:3, 3]
                 col = eval_sh(col, vi.positions - (-(R.T @ t)))
             col = np.ascontiguousarray(col.detach().to(torch.float32).cpu().numpy())
-            W, H = vi.width, vi.height
+            W, H = vi.width * ss, vi.height * ss
+            Kb = torch.cat([Kb[:2] * ss, Kb[2:]])
             w2c_np = w2c.cpu().numpy().astype(np.float64)
             uvz = _scratch("uvz", (F, 9), np.float32)
             box = _scratch("box", (F, 4), np.int32)
@@ -351,10 +359,10 @@ def rasterize_hard(positions, faces, colors, world_to_camera, K, width, height, 
             face_id = torch.from_numpy(face_id_np)
             won = torch.from_numpy(won_np).to(vi.positions.dtype)
             dt = vi.positions.dtype
-            outs.append(RenderOutput(rgb=torch.from_numpy(rgb).to(dt), alpha=(face_id >= 0).to(dt),
-                                     depth=torch.from_numpy(depth).to(dt), normal=torch.from_numpy(normal).to(dt),
-                                     max_weight=won, face_id=face_id, pairs_evaluated=int(evals),
-                                     faces_visible=int(order.shape[0])))
+            outs.append(downsample(RenderOutput(
+                rgb=torch.from_numpy(rgb).to(dt), alpha=(face_id >= 0).to(dt), depth=torch.from_numpy(depth).to(dt),
+                normal=torch.from_numpy(normal).to(dt), max_weight=won, face_id=face_id, pairs_evaluated=int(evals),
+                faces_visible=int(order.shape[0])), ss))
     if not vi.batched:
         return outs[0]
     return RenderOutput(rgb=torch.stack([o.rgb for o in outs]), alpha=torch.stack([o.alpha for o in outs]),

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 
 from trisplat.render.inputs import make_options, validate
-from trisplat.render.types import RenderOptions, RenderOutput
+from trisplat.render.types import RenderOptions, RenderOutput, downsample
 from trisplat.scene.sh import eval_sh
 
 
@@ -13,12 +13,6 @@ def camera_center(world_to_camera: torch.Tensor) -> torch.Tensor:
     """World position [3] of the camera centre of a [4,4] world-to-camera matrix."""
     R, t = world_to_camera[:3, :3], world_to_camera[:3, 3]
     return -(R.T @ t)
-
-
-def _pool(x: torch.Tensor, s: int) -> torch.Tensor:
-    """Area (box) downsampling of an [H*s, W*s, C] image by s: the gradient flows through."""
-    H, W, C = x.shape[0] // s, x.shape[1] // s, x.shape[2]
-    return x.reshape(H, s, W, s, C).mean(dim=(1, 3))
 
 
 def _render_view(positions, faces, colors, opacities, sigma, w2c, K, width, height, bg, opts: RenderOptions):
@@ -37,18 +31,7 @@ def _render_view(positions, faces, colors, opacities, sigma, w2c, K, width, heig
         from trisplat.render.splat import render_numba
 
         out = render_numba(positions, faces, colors, opacities, sigma, w2c, K, W, H, bg, opts)
-    if s > 1:
-        out = RenderOutput(
-            rgb=_pool(out.rgb, s),
-            alpha=_pool(out.alpha[..., None], s)[..., 0],
-            depth=_pool(out.depth[..., None], s)[..., 0],
-            normal=_pool(out.normal, s),
-            max_weight=out.max_weight,
-            face_id=out.face_id[s // 2 :: s, s // 2 :: s].contiguous(),
-            pairs_evaluated=out.pairs_evaluated,
-            faces_visible=out.faces_visible,
-        )
-    return out
+    return downsample(out, s)
 
 
 def rasterize(

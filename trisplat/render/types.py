@@ -58,3 +58,27 @@ class RenderOutput:
     face_id: torch.Tensor
     pairs_evaluated: int = 0
     faces_visible: int = 0
+
+
+def _pool(x: torch.Tensor, s: int) -> torch.Tensor:
+    """Area (box) downsampling of an [H*s, W*s, C] image by s: the gradient flows through."""
+    H, W, C = x.shape[0] // s, x.shape[1] // s, x.shape[2]
+    return x.reshape(H, s, W, s, C).mean(dim=(1, 3))
+
+
+def downsample(out: RenderOutput, s: int) -> RenderOutput:
+    """One view rendered at s x resolution -> the image at 1x: rgb, alpha, depth and normal area-averaged over each
+    pixel's s x s samples (the box filter of supersampling anti-aliasing), face_id taken at the sample nearest the
+    pixel centre, per-face outputs and counters unchanged."""
+    if s == 1:
+        return out
+    return RenderOutput(
+        rgb=_pool(out.rgb, s),
+        alpha=_pool(out.alpha[..., None], s)[..., 0],
+        depth=_pool(out.depth[..., None], s)[..., 0],
+        normal=_pool(out.normal, s),
+        max_weight=out.max_weight,
+        face_id=out.face_id[s // 2 :: s, s // 2 :: s].contiguous(),
+        pairs_evaluated=out.pairs_evaluated,
+        faces_visible=out.faces_visible,
+    )

@@ -33,7 +33,8 @@ def write_outputs(trainer, pruned) -> dict:
     """Everything a finished run leaves in RUN/ (see trisplat/run.py); returns the metrics written.
 
     The test split is scored with the opaque mesh (hard z-buffer render, the deliverable) and with the soft
-    renderer at the final sigma, so the gap between them is on record.
+    renderer at the final sigma, so the gap between them is on record; both at cfg.eval_supersample samples per
+    pixel side, the hard render also at one sample per pixel.
     """
     from trisplat.eval.report import write_png
     from trisplat.eval.views import evaluate_run, render_view
@@ -48,7 +49,8 @@ def write_outputs(trainer, pruned) -> dict:
     renders.mkdir(exist_ok=True)
     for i in list(data.test_indices)[: cfg.num_renders]:
         cam = data.cameras[int(i)]
-        write_png(render_view(scene, cam, "hard", cfg.background), renders / f"{image_stem(cam, int(i))}.png")
+        write_png(render_view(scene, cam, "hard", cfg.background, supersample=cfg.eval_supersample),
+                  renders / f"{image_stem(cam, int(i))}.png")
 
     metrics: dict = {}
     if len(data.test_indices):
@@ -56,7 +58,11 @@ def write_outputs(trainer, pruned) -> dict:
         soft = evaluate_run(run_dir, "test", "soft", report=False, show_progress=False)
         metrics.update({"psnr": hard.psnr, "ssim": hard.ssim, "lpips": hard.lpips, "lpips_net": "alex-v0.1",
                         "soft_psnr": soft.psnr, "soft_ssim": soft.ssim, "test_views": len(hard.views),
-                        "report": str(Path("eval_test") / "report.html")})
+                        "supersample": cfg.eval_supersample, "report": str(Path("eval_test") / "report.html")})
+        if cfg.eval_supersample != 1:  # the same mesh with one sample per pixel centre (aliased edges), on record
+            one = evaluate_run(run_dir, "test", "hard", out_dir=run_dir / "eval_test_1spp", report=False,
+                               show_progress=False, supersample=1)
+            metrics.update({"psnr_1spp": one.psnr, "ssim_1spp": one.ssim, "lpips_1spp": one.lpips})
     opac = scene.opacities()
     metrics.update({
         "render_mode": "hard",

@@ -255,7 +255,8 @@ class Trainer:
         idx = list(self.data.test_indices)[: max_views or None]
         if not idx:
             return float("nan")
-        return float(np.mean([psnr_value(self.render(i, p).rgb.clamp(0, 1), self.gt(i)) for i in idx]))
+        ss = self.cfg.eval_supersample
+        return float(np.mean([psnr_value(self.render(i, p, supersample=ss).rgb.clamp(0, 1), self.gt(i)) for i in idx]))
 
     # ------------------------------------------------------------------------------------------------------- run
     def _plan_minutes(self, measured_s_per_step: float, elapsed_s: float) -> None:
