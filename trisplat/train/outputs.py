@@ -54,8 +54,9 @@ def write_outputs(trainer, pruned) -> dict:
 
     metrics: dict = {}
     if len(data.test_indices):
-        hard = evaluate_run(run_dir, "test", "hard", show_progress=False)
-        soft = evaluate_run(run_dir, "test", "soft", report=False, show_progress=False)
+        ss = cfg.eval_supersample  # explicit: a config.json written before this setting existed does not name it
+        hard = evaluate_run(run_dir, "test", "hard", show_progress=False, supersample=ss)
+        soft = evaluate_run(run_dir, "test", "soft", report=False, show_progress=False, supersample=ss)
         metrics.update({"psnr": hard.psnr, "ssim": hard.ssim, "lpips": hard.lpips, "lpips_net": "alex-v0.1",
                         "soft_psnr": soft.psnr, "soft_ssim": soft.ssim, "test_views": len(hard.views),
                         "supersample": cfg.eval_supersample, "report": str(Path("eval_test") / "report.html")})
