@@ -173,6 +173,26 @@ def test_minutes_progress_follows_wall_time_when_steps_get_dearer(tiny_scene, tm
     assert np.abs(p - t / t[-1]).max() < 0.1  # progress linear in wall time
 
 
+def test_densify_and_prune_are_each_at_least_one_epoch_apart(tiny_scene, tmp_path, monkeypatch):
+    """A short run crosses an event boundary at almost every step: both topology edits wait a full pass over the
+    training views since their last one (they judge faces by statistics over every view), so neither outruns the
+    other."""
+    import trisplat.train.trainer as trainer_mod
+
+    events = {"densify": [], "prune": []}
+    tr = _trainer(tiny_scene, tmp_path / "ev", steps=60, prune_from=0.1, densify_until=0.9, prune_until=0.9)
+    for name in events:
+        monkeypatch.setattr(trainer_mod, name, lambda *a, _n=name, **k: events[_n].append(tr.step))
+    monkeypatch.setattr(tr, "finish", lambda: {})
+    tr.train()
+    n_train = len(tr.data.train_indices)
+    for name, steps in events.items():
+        assert len(steps) >= 4, name
+        assert steps[0] >= n_train and min(np.diff(steps)) >= n_train, (name, steps)
+    # and a resumed run remembers when the last ones were
+    assert tr._extra()["last_densify"] == events["densify"][-1]
+
+
 def test_nan_rolls_back_with_lower_learning_rate_then_gives_up(tiny_scene, tmp_path):
     from trisplat.train.trainer import MAX_ROLLBACKS, TrainingDiverged
 
