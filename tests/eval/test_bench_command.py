@@ -99,3 +99,15 @@ def test_machine_info_records_commit_and_dirtiness(tmp_path, monkeypatch):
         assert f"commit {info['commit']}" in md
         assert ("uncommitted changes" in md) is dirty
         assert json.loads((tmp_path / "x.json").read_text())["machine"]["commit_dirty"] is dirty
+
+
+def test_train_table_reads_psnr_against_time_from_a_real_history(tmp_path):
+    """The curve column of `bench train`: the last test PSNR at or before 25/50/75% of the run's time, from a
+    history.jsonl as the trainer writes it (its first line records the initialisation and has no time)."""
+    from trisplat.bench.train import _psnr_at_fractions
+
+    history = [{"init": "hull: 4000 faces"}, {"step": 10, "wall_s": 10.0, "loss": 0.2},
+               {"step": 20, "wall_s": 20.0, "test_psnr": 21.0}, {"step": 50, "wall_s": 50.0, "test_psnr": 24.5},
+               {"step": 100, "wall_s": 100.0, "loss": 0.1}]
+    assert _psnr_at_fractions(history) == ["21.00@0.3m", "24.50@0.8m", "24.50@0.8m"]
+    assert _psnr_at_fractions(history[:2]) == ["-", "-", "-"]

@@ -42,7 +42,7 @@ def _psnr_at_fractions(history: list[dict], fractions=(0.25, 0.5, 0.75)) -> list
     tests = [h for h in history if "test_psnr" in h]
     if not tests:
         return ["-"] * len(fractions)
-    end = max(h["wall_s"] for h in history)
+    end = max(h["wall_s"] for h in history if "wall_s" in h)  # the first line, {"init": ...}, has no time
     out = []
     for f in fractions:
         before = [h for h in tests if h["wall_s"] <= f * end + 1e-9]
