@@ -66,4 +66,6 @@ def test_presets_build_and_reject_unknown():
         make_config("nope")
     with pytest.raises(ValueError, match="unknown config keys"):
         TrainConfig.from_dict({"stepz": 3})
+    with pytest.raises(ValueError, match="eval_supersample must be one of"):
+        make_config("default", eval_supersample=5)  # refused before training, not when scoring after it
     assert math.isclose(make_config("fast", steps=10).steps, 10)

@@ -117,6 +117,13 @@ class TrainConfig:
     anti-aliased renderer shows it (2: 4 samples per pixel). The final metrics also record one sample per pixel
     (psnr_1spp, ...)."""
 
+    def __post_init__(self):
+        from trisplat.render.inputs import SUPERSAMPLE_FACTORS
+
+        # checked here, not when the run is scored after its whole training time
+        if self.eval_supersample not in SUPERSAMPLE_FACTORS:
+            raise ValueError(f"eval_supersample must be one of {SUPERSAMPLE_FACTORS}, got {self.eval_supersample!r}")
+
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
 
