@@ -1,4 +1,5 @@
-"""RenderOutput and RenderOptions: the typed hand-off between the rasterizer and everything that uses images."""
+"""RenderOutput and RenderOptions, the typed hand-off between the rasterizer and everything that uses images, and
+downsample: the box filter that turns a supersampled RenderOutput into its 1x image."""
 from __future__ import annotations
 
 from dataclasses import dataclass
