@@ -9,7 +9,7 @@ import numpy as np
 import torch
 from numba import njit, prange
 
-from trisplat.render.inputs import SUPERSAMPLE_FACTORS, validate
+from trisplat.render.inputs import check_supersample, validate
 from trisplat.render.types import RenderOutput, downsample
 from trisplat.scene.sh import eval_sh
 
@@ -314,9 +314,7 @@ def rasterize_hard(positions, faces, colors, world_to_camera, K, width, height, 
     vi = validate(positions, faces, colors, None, 1.0, world_to_camera, K, width, height, background)
     if not near > 0:
         raise ValueError(f"near must be > 0, got {near}")
-    if supersample not in SUPERSAMPLE_FACTORS:
-        raise ValueError(f"supersample must be one of {SUPERSAMPLE_FACTORS}, got {supersample!r}")
-    ss = supersample
+    ss = check_supersample(supersample)
     outs = []
     with torch.no_grad():
         pos = vi.positions.detach().to(torch.float32).cpu().numpy()

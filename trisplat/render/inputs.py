@@ -15,6 +15,13 @@ BACKENDS = ("numba", "reference")
 OPACITY_MODES = ("min", "mean")
 
 
+def check_supersample(s, name: str = "supersample") -> int:
+    """s if it is a supported supersampling factor (samples per pixel side), else ValueError naming `name`."""
+    if s not in SUPERSAMPLE_FACTORS:
+        raise ValueError(f"{name} must be one of {SUPERSAMPLE_FACTORS}, got {s!r}")
+    return s
+
+
 def scan(t: torch.Tensor, bounds: bool = True) -> tuple[int, float, float]:
     """Non-finite count, min and max of a tensor's values (vectorised numpy reductions, no big temporaries).
 
@@ -76,8 +83,7 @@ def make_options(options: dict) -> RenderOptions:
         raise ValueError(f"backend must be one of {BACKENDS}, got {opts.backend!r}")
     if opts.opacity_mode not in OPACITY_MODES:
         raise ValueError(f"opacity_mode must be one of {OPACITY_MODES}, got {opts.opacity_mode!r}")
-    if opts.supersample not in SUPERSAMPLE_FACTORS:
-        raise ValueError(f"supersample must be one of {SUPERSAMPLE_FACTORS}, got {opts.supersample!r}")
+    check_supersample(opts.supersample)
     if not (isinstance(opts.tile_size, int) and 4 <= opts.tile_size <= 64):
         raise ValueError(f"tile_size must be an int in 4..64 pixels, got {opts.tile_size!r}")
     if not (0 < opts.near < opts.far):

@@ -118,11 +118,9 @@ class TrainConfig:
     (psnr_1spp, ...)."""
 
     def __post_init__(self):
-        from trisplat.render.inputs import SUPERSAMPLE_FACTORS
+        from trisplat.render.inputs import check_supersample
 
-        # checked here, not when the run is scored after its whole training time
-        if self.eval_supersample not in SUPERSAMPLE_FACTORS:
-            raise ValueError(f"eval_supersample must be one of {SUPERSAMPLE_FACTORS}, got {self.eval_supersample!r}")
+        check_supersample(self.eval_supersample, "eval_supersample")  # now, not when scoring after the training
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -152,8 +150,8 @@ PRESETS: dict[str, dict] = {
     # Position learning rate decaying to 1/1000 (not the paper's 1/100) and densification until half the run (was
     # 70%): in 10-minute lego trials (docs/benchmarks.md) Adam's late position steps were noise that the hardening
     # could not absorb (final ratio 0.1: -4.6 dB; 0.01 -> 0.001: +0.3 dB), and the shorter window leaves more,
-    # cheaper steps for the hardening (+0.5 dB). 30-minute bench: lego 25.33 -> 27.37 dB, but fox 24.24 -> 23.13 dB
-    # (35k instead of 69k faces at the end; a scene-dependent face budget is not built yet).
+    # cheaper steps for the hardening (+0.5 dB). 30-minute bench, one sample per pixel: lego 25.33 -> 27.37 dB, but
+    # fox 24.24 -> 23.13 dB (35k instead of 69k faces at the end; a scene-dependent face budget is not built yet).
     "default": dict(steps=7_000, sh_degree=3, max_vertices=150_000, densify_until=0.5, lr_position_final_ratio=1e-3,
                     init_random_points=4_000, init_max_points=3_000, supersample_2x_from=1.01),
     # The paper's schedule.
