@@ -221,7 +221,7 @@ class Trainer:
         # pruning judges faces by statistics over every view, so two prunes are at least one epoch apart; so are two
         # densifications (they sample by the same statistics). Spacing only one of them let short runs (fewer steps
         # per event than views) densify at every event and prune at every other: a 10-minute lego trial grew to
-        # 122k faces at half time; the 30-minute bench (~240 steps per event, so never throttled) peaked at 55k.
+        # 122k faces at half time; the 30-minute lego bench (~170 steps per event, so never throttled) peaked at 58k.
         if seen_all_views and not self.connected and self.step - self._last_prune >= n_train and schedules.crossed(
                 p_prev, p, cfg.prune_from, cfg.prune_until, cfg.prune_interval):
             cam = self.data.cameras[self.data.train_indices[0]]
