@@ -1,0 +1,125 @@
+"""RGB-D stream readers (TUM, 7-Scenes, Redwood): association, intrinsics, invalid depth, and precise errors."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import shared_data
+from PIL import Image
+
+from trisplat.data.rgbd_stream import downscale_depth, load_frame, open_stream, read_sevenscenes, read_tum
+
+
+def _write_pair(color_path, depth_path, w=8, h=6, depth_raw=1000, depth_shape=None):
+    color_path.parent.mkdir(parents=True, exist_ok=True)
+    depth_path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(np.full((h, w, 3), 128, np.uint8)).save(color_path)
+    dh, dw = depth_shape or (h, w)
+    d = np.full((dh, dw), depth_raw, np.uint16)
+    d[0, 0] = 0
+    d[0, 1] = 65535
+    Image.fromarray(d).save(depth_path)
+
+
+def _tum(root, rgb_stamps, depth_stamps, gt=True, name="rgbd_dataset_freiburg1_test"):
+    root = root / name
+    rgb, depth, poses = ["# rgb"], ["# depth"], ["# gt"]
+    for k, t in enumerate(rgb_stamps):
+        _write_pair(root / "rgb" / f"{t:.6f}.png", root / "depth" / "unused.png")
+        rgb.append(f"{t:.6f} rgb/{t:.6f}.png")
+    for t in depth_stamps:
+        _write_pair(root / "rgb" / "unused.png", root / "depth" / f"{t:.6f}.png", depth_raw=5000)
+        depth.append(f"{t:.6f} depth/{t:.6f}.png")
+        poses.append(f"{t:.6f} 1 2 3 0 0 0.7071067811865476 0.7071067811865476")
+    (root / "rgb.txt").write_text("\n".join(rgb) + "\n")
+    (root / "depth.txt").write_text("\n".join(depth) + "\n")
+    if gt:
+        (root / "groundtruth.txt").write_text("\n".join(poses) + "\n")
+    return root
+
+
+def test_tum_associates_by_time_and_reads_poses(tmp_path):
+    root = _tum(tmp_path, [1.0, 1.1, 1.2, 5.0], [1.005, 1.095, 1.219])
+    s = open_stream(root)
+    assert s.format == "tum" and len(s) == 3  # 5.0 has no depth within 0.02 s: dropped with a warning
+    assert "dropped 1 colour frame" in s.warnings[0]
+    assert [f.depth_path.name for f in s.frames] == ["1.005000.png", "1.095000.png", "1.219000.png"]
+    assert [f.stamp for f in s.frames] == [1.0, 1.1, 1.2]
+    c2w = s.frames[0].reference_c2w
+    np.testing.assert_allclose(c2w[:3, 3], [1, 2, 3])
+    np.testing.assert_allclose(c2w[:3, :3], [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-12)  # 90 deg about z
+    np.testing.assert_allclose(s.K[0], [517.3, 0, 319.1])  # freiburg1, principal point shifted to +0.5
+    rgb, depth = load_frame(s, 0)
+    assert rgb.shape == (6, 8, 3) and depth.dtype == np.float32
+    assert depth[0, 0] == 0 and depth[0, 1] == 0 and depth[1, 1] == pytest.approx(1.0)  # 5000 / 5000 m
+
+
+def test_tum_errors_name_files(tmp_path):
+    root = _tum(tmp_path, [1.0, 1.1], [3.0, 3.1], name="a_freiburg2_x")
+    with pytest.raises(ValueError, match=r"depth\.txt: unmatched timestamps: no depth stamp within 0\.02 s"):
+        open_stream(root)
+    root = _tum(tmp_path, [1.0], [1.0], name="b_freiburg2_x")
+    (root / "depth" / "1.000000.png").unlink()
+    with pytest.raises(FileNotFoundError, match=r"depth/1\.000000\.png: listed in .*depth\.txt but does not exist"):
+        read_tum(root)
+    root = _tum(tmp_path, [1.0], [1.0], name="no_intrinsics")
+    with pytest.raises(FileNotFoundError, match="needs intrinsics"):
+        read_tum(root)
+
+
+def _sevenscenes(root, n=3, poses=True):
+    root.mkdir(parents=True, exist_ok=True)
+    (root / "camera-intrinsics.txt").write_text("585 0 4\n0 585 3\n0 0 1\n")
+    for i in range(n):
+        _write_pair(root / f"frame-{i:06d}.color.png", root / f"frame-{i:06d}.depth.png")
+        if poses:
+            m = np.eye(4)
+            m[0, 3] = 0.1 * i
+            np.savetxt(root / f"frame-{i:06d}.pose.txt", m)
+    return root
+
+
+def test_sevenscenes_layout(tmp_path):
+    s = open_stream(_sevenscenes(tmp_path / "s"))
+    assert s.format == "7scenes" and len(s) == 3 and (s.width, s.height) == (8, 6)
+    np.testing.assert_allclose(s.K, [[585, 0, 4.5], [0, 585, 3.5], [0, 0, 1]])
+    assert s.frames[2].reference_c2w[0, 3] == pytest.approx(0.2) and s.frames[1].stamp is None
+    rgb, depth = load_frame(s, 1)
+    assert depth[0, 0] == 0 and depth[0, 1] == 0  # 0 and 65535 are invalid
+    assert depth[2, 2] == pytest.approx(1.0)  # 1000 mm
+    s2 = open_stream(_sevenscenes(tmp_path / "np", poses=False), depth_scale=0.002)
+    assert not s2.has_reference and load_frame(s2, 0)[1][2, 2] == pytest.approx(2.0)
+
+
+def test_sevenscenes_errors_name_files(tmp_path):
+    root = _sevenscenes(tmp_path / "m")
+    (root / "frame-000001.depth.png").unlink()
+    with pytest.raises(FileNotFoundError, match=r"frame-000001\.depth\.png: depth file of frame-000001\.color\.png"):
+        read_sevenscenes(root)
+    root = _sevenscenes(tmp_path / "sz")
+    _write_pair(root / "frame-000002.color.png", root / "frame-000002.depth.png", depth_shape=(3, 4))
+    s = open_stream(root)
+    with pytest.raises(ValueError, match=r"frame-000002\.depth\.png: depth is 4x3 but the colour image"):
+        load_frame(s, 2)
+    root = _sevenscenes(tmp_path / "k")
+    (root / "camera-intrinsics.txt").write_text("585 0 4\n0 585\n")
+    with pytest.raises(ValueError, match=r"camera-intrinsics\.txt: malformed intrinsics"):
+        open_stream(root)
+    with pytest.raises(FileNotFoundError, match="capture folder does not exist"):
+        open_stream(tmp_path / "nothing")
+
+
+def test_downscale_depth_keeps_edges_invalid():
+    d = np.array([[1.0, 1.0, 2.0, 2.0], [1.0, 1.0, 2.0, 0.0], [1.0, 3.0, 0.0, 0.0], [1.0, 1.0, 0.0, 0.0]], np.float32)
+    out = downscale_depth(d, 2)
+    np.testing.assert_allclose(out, [[1.0, 2.0], [0.0, 0.0]])  # edge block (1..3) and mostly-invalid block -> 0
+
+
+def test_real_sevenscenes_and_redwood():
+    s = open_stream(shared_data("sevenscenes_rgbd"))
+    assert s.format == "7scenes" and len(s) == 400 and s.has_reference
+    np.testing.assert_allclose(s.K_at(2), [[292.5, 0, 160.25], [0, 292.5, 120.25], [0, 0, 1]])
+    rgb, depth = load_frame(s, 0, downscale=2)
+    assert rgb.shape == (240, 320, 3) and depth.shape == (240, 320)
+    assert 0.3 < np.median(depth[depth > 0]) < 4.0
+    r = open_stream(shared_data("icl_rgbd"))
+    assert r.format == "redwood" and r.has_reference and len(r) > 1

@@ -1,0 +1,318 @@
+"""RGB-D streams for SLAM: frames in order (colour, depth, timestamp, optional reference pose) from TUM RGB-D,
+7-Scenes / 3DMatch frame folders and the Redwood/ICL layout; decoding of one frame at a chosen resolution."""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from trisplat.data.images import image_size, read_image
+from trisplat.data.rgbd import (
+    DEFAULT_DEPTH_SCALE,
+    INTRINSIC_FILES,
+    TUM_DEPTH_SCALE,
+    _quat_to_matrix,
+    _read_tum_list,
+    read_depth_raw,
+    read_open3d_intrinsics,
+)
+
+SEVENSCENES_DEPTH_SCALE = 1.0 / 1000.0  # metres per raw unit: 7-Scenes / 3DMatch depth PNGs are in millimetres
+INVALID_DEPTH_RAW = (0, 65535)  # raw 16-bit depth values that mean "no measurement"
+TUM_ASSOC_MAX_DT = 0.02  # seconds: colour/depth (and reference pose) stamps further apart are not associated
+# OpenCV-style K files (7-Scenes camera-intrinsics.txt, TUM's published values) put pixel centres at integers;
+# ours are at +0.5 (docs/conventions.md).
+INTEGER_CENTRE_SHIFT = 0.5
+# Published TUM RGB-D colour intrinsics (fx, fy, cx, cy; integer-centred), chosen by the sequence folder's name.
+TUM_FREIBURG_INTRINSICS = {
+    "freiburg1": (517.3, 516.5, 318.6, 255.3),
+    "freiburg2": (520.9, 521.0, 325.1, 249.7),
+    "freiburg3": (535.4, 539.2, 320.1, 247.6),
+}
+SEVENSCENES_COLOR = re.compile(r"^frame-(\d+)\.color\.(jpg|jpeg|png)$", re.IGNORECASE)
+
+
+@dataclass(frozen=True)
+class StreamFrame:
+    """One RGB-D frame: files, timestamp (seconds; None when the format has none) and the capture's reference
+    camera-to-world [4,4] (OpenCV axes, metres) or None."""
+
+    index: int
+    color_path: Path
+    depth_path: Path
+    stamp: float | None = None
+    reference_c2w: np.ndarray | None = None
+
+
+@dataclass
+class RGBDStream:
+    """An ordered RGB-D sequence with one pinhole camera shared by colour and depth (registered).
+
+    K: float64 [3,3] at width x height, pixel centres at +0.5. depth_scale: metres per raw depth unit.
+    """
+
+    format: str
+    root: Path
+    frames: list[StreamFrame]
+    width: int
+    height: int
+    K: np.ndarray
+    depth_scale: float
+    warnings: list[str] = field(default_factory=list)
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    @property
+    def has_reference(self) -> bool:
+        return any(f.reference_c2w is not None for f in self.frames)
+
+    def K_at(self, downscale: int) -> np.ndarray:
+        """K for images downscaled by an integer factor (corner-based: fx, fy, cx, cy divided by the factor)."""
+        K = self.K.copy()
+        K[:2] /= downscale
+        return K
+
+    def size_at(self, downscale: int) -> tuple[int, int]:
+        return self.width // downscale, self.height // downscale
+
+
+def _read_k_txt(path: Path) -> np.ndarray:
+    try:
+        K = np.loadtxt(path, dtype=np.float64)
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"{path}: malformed intrinsics: expected a 3x3 matrix of numbers ({exc})") from None
+    if K.shape != (3, 3) or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise ValueError(f"{path}: malformed intrinsics: expected a 3x3 matrix with positive focal lengths")
+    K = K.copy()
+    K[0, 2] += INTEGER_CENTRE_SHIFT
+    K[1, 2] += INTEGER_CENTRE_SHIFT
+    return K
+
+
+def _read_pose_txt(path: Path) -> np.ndarray | None:
+    """A 4x4 camera-to-world matrix; None for 7-Scenes' placeholder of invalid poses (non-finite entries)."""
+    try:
+        m = np.loadtxt(path, dtype=np.float64)
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"{path}: malformed pose: expected a 4x4 matrix of numbers ({exc})") from None
+    if m.shape != (4, 4):
+        raise ValueError(f"{path}: malformed pose: expected a 4x4 matrix, got shape {m.shape}")
+    return m if np.isfinite(m).all() else None
+
+
+def read_sevenscenes(root: Path, depth_scale: float | None = None) -> RGBDStream:
+    """7-Scenes / 3DMatch frames: frame-NNNNNN.color.{jpg,png} + frame-NNNNNN.depth.png (+ .pose.txt),
+    camera-intrinsics.txt (3x3, integer-centred principal point). Depth in millimetres unless depth_scale is given."""
+    root = Path(root)
+    colors = sorted(
+        ((int(m.group(1)), p) for p in root.iterdir() if (m := SEVENSCENES_COLOR.match(p.name))), key=lambda t: t[0]
+    )
+    if not colors:
+        raise FileNotFoundError(f"{root}: no frame-NNNNNN.color.jpg|png files (7-Scenes / 3DMatch layout)")
+    intr = root / "camera-intrinsics.txt"
+    if not intr.is_file():
+        raise FileNotFoundError(f"{intr}: 7-Scenes capture needs camera-intrinsics.txt (3x3 K)")
+    K = _read_k_txt(intr)
+    frames, missing_pose = [], 0
+    for i, (num, cpath) in enumerate(colors):
+        stem = cpath.name[: cpath.name.lower().index(".color.")]
+        dpath = root / f"{stem}.depth.png"
+        if not dpath.is_file():
+            raise FileNotFoundError(f"{dpath}: depth file of {cpath.name} does not exist")
+        ppath = root / f"{stem}.pose.txt"
+        pose = _read_pose_txt(ppath) if ppath.is_file() else None
+        missing_pose += pose is None
+        frames.append(StreamFrame(index=i, color_path=cpath, depth_path=dpath, stamp=None, reference_c2w=pose))
+    w, h = image_size(frames[0].color_path)
+    warnings = []
+    if 0 < missing_pose < len(frames):
+        warnings.append(f"{missing_pose} of {len(frames)} frames have no (valid) reference pose")
+    return RGBDStream("7scenes", root, frames, w, h, K, depth_scale or SEVENSCENES_DEPTH_SCALE, warnings)
+
+
+def _tum_intrinsics(root: Path) -> np.ndarray:
+    intr = next((root / f for f in INTRINSIC_FILES if (root / f).is_file()), None)
+    if intr is not None:
+        return read_open3d_intrinsics(intr)[2]
+    if (root / "camera-intrinsics.txt").is_file():
+        return _read_k_txt(root / "camera-intrinsics.txt")
+    for key, (fx, fy, cx, cy) in TUM_FREIBURG_INTRINSICS.items():
+        if key in root.resolve().name:
+            return np.array([[fx, 0, cx + INTEGER_CENTRE_SHIFT], [0, fy, cy + INTEGER_CENTRE_SHIFT], [0, 0, 1.0]])
+    raise FileNotFoundError(
+        f"{root}: TUM capture needs intrinsics: one of {INTRINSIC_FILES}, camera-intrinsics.txt, or a folder name "
+        f"containing {'/'.join(TUM_FREIBURG_INTRINSICS)}"
+    )
+
+
+def _associate(query: np.ndarray, stamps: np.ndarray, max_dt: float) -> np.ndarray:
+    """Index of the nearest stamp per query stamp, -1 where the nearest is further than max_dt."""
+    order = np.argsort(stamps)
+    s = stamps[order]
+    j = np.clip(np.searchsorted(s, query), 1, len(s) - 1) if len(s) > 1 else np.zeros(len(query), int)
+    if len(s) > 1:
+        j = np.where(np.abs(s[j - 1] - query) <= np.abs(s[j] - query), j - 1, j)
+    out = order[j]
+    return np.where(np.abs(stamps[out] - query) <= max_dt, out, -1)
+
+
+def read_tum(root: Path, depth_scale: float | None = None, max_dt: float = TUM_ASSOC_MAX_DT) -> RGBDStream:
+    """TUM RGB-D: rgb.txt and depth.txt (stamp + relative path per line) associated by nearest timestamp within
+    max_dt seconds; groundtruth.txt (stamp tx ty tz qx qy qz qw, camera-to-world), if present, gives the
+    reference poses. Colour frames with no depth in time are dropped with a warning; none matched is an error."""
+    root = Path(root)
+    rgb_txt, depth_txt, gt_txt = root / "rgb.txt", root / "depth.txt", root / "groundtruth.txt"
+    for p in (rgb_txt, depth_txt):
+        if not p.is_file():
+            raise FileNotFoundError(f"{p}: TUM capture needs rgb.txt and depth.txt")
+    rgb, depth = _read_tum_list(rgb_txt), _read_tum_list(depth_txt)
+    for p, lst in ((rgb_txt, rgb), (depth_txt, depth)):
+        if not lst:
+            raise ValueError(f"{p}: lists no frames")
+        bad = next((k for k, (_, toks) in enumerate(lst) if not toks), None)
+        if bad is not None:
+            raise ValueError(f"{p}: entry {bad} (stamp {lst[bad][0]}) has no file name")
+    rs = np.array([t for t, _ in rgb])
+    ds = np.array([t for t, _ in depth])
+    di = _associate(rs, ds, max_dt)
+    if (di < 0).all():
+        raise ValueError(
+            f"{depth_txt}: unmatched timestamps: no depth stamp within {max_dt} s of any colour stamp in {rgb_txt} "
+            f"(colour {rs.min():.3f}-{rs.max():.3f} s, depth {ds.min():.3f}-{ds.max():.3f} s)"
+        )
+    gi = np.full(len(rs), -1)
+    gt = []
+    if gt_txt.is_file():
+        gt = _read_tum_list(gt_txt)
+        for k, (_, toks) in enumerate(gt):
+            if len(toks) < 7:
+                raise ValueError(f"{gt_txt}: entry {k}: malformed pose (need stamp tx ty tz qx qy qz qw)")
+        if gt:
+            gi = _associate(rs, np.array([t for t, _ in gt]), max_dt)
+    frames = []
+    for k in np.nonzero(di >= 0)[0]:
+        cpath, dpath = root / rgb[k][1][0], root / depth[di[k]][1][0]
+        for p, lst in ((cpath, rgb_txt), (dpath, depth_txt)):
+            if not p.is_file():
+                raise FileNotFoundError(f"{p}: listed in {lst} but does not exist")
+        pose = None
+        if gi[k] >= 0:
+            vals = [float(v) for v in gt[gi[k]][1][:7]]
+            pose = np.eye(4)
+            pose[:3, :3] = _quat_to_matrix(*vals[3:])
+            pose[:3, 3] = vals[:3]
+        frames.append(StreamFrame(len(frames), cpath, dpath, float(rs[k]), pose))
+    warnings = []
+    if (di < 0).any():
+        warnings.append(f"dropped {int((di < 0).sum())} colour frame(s) of {rgb_txt} with no depth within {max_dt} s")
+    w, h = image_size(frames[0].color_path)
+    return RGBDStream("tum", root, frames, w, h, _tum_intrinsics(root), depth_scale or TUM_DEPTH_SCALE, warnings)
+
+
+def read_redwood(root: Path, depth_scale: float | None = None) -> RGBDStream:
+    """Redwood / ICL-NUIM: colour/ and depth/ folders, camera.json, a .log trajectory (the reference poses)."""
+    from trisplat.data.rgbd import read_rgbd
+
+    raw = read_rgbd(Path(root), depth_scale)
+    cam = raw.views[0].camera
+    frames = [
+        StreamFrame(i, v.image_path, v.depth_path, None, np.linalg.inv(v.world_to_camera))
+        for i, v in enumerate(raw.views)
+    ]
+    return RGBDStream("redwood", Path(root), frames, cam.width, cam.height, cam.pinhole_K(),
+                      raw.views[0].depth_scale, list(raw.warnings))
+
+
+def detect_stream_format(root: Path) -> str | None:
+    """'tum', '7scenes', 'redwood' or None."""
+    root = Path(root)
+    if (root / "rgb.txt").is_file() and (root / "depth.txt").is_file():
+        return "tum"
+    if (root / "camera-intrinsics.txt").is_file() or any(SEVENSCENES_COLOR.match(p.name) for p in root.glob("frame-*")):
+        return "7scenes"
+    from trisplat.data.rgbd import find_rgbd_layout
+
+    if find_rgbd_layout(root) is not None:
+        return "redwood"
+    return None
+
+
+def open_stream(root: str | Path, depth_scale: float | None = None, format: str | None = None) -> RGBDStream:
+    """Read an RGB-D capture folder as an ordered stream (format detected unless given)."""
+    root = Path(root)
+    if not root.is_dir():
+        raise FileNotFoundError(f"{root}: capture folder does not exist")
+    fmt = format or detect_stream_format(root)
+    readers = {"tum": read_tum, "7scenes": read_sevenscenes, "redwood": read_redwood}
+    if fmt not in readers:
+        raise ValueError(
+            f"{root}: not an RGB-D stream: expected TUM (rgb.txt + depth.txt), 7-Scenes (frame-NNNNNN.color.jpg + "
+            f".depth.png + camera-intrinsics.txt) or Redwood (color/ + depth/ + *.log)"
+        )
+    if depth_scale is not None and not depth_scale > 0:
+        raise ValueError(f"depth_scale must be > 0 metres per raw unit, got {depth_scale}")
+    return readers[fmt](root, depth_scale)
+
+
+def _box_down(a: np.ndarray, f: int) -> np.ndarray:
+    H, W = a.shape[0] // f, a.shape[1] // f
+    a = a[: H * f, : W * f]
+    return a.reshape(H, f, W, f, *a.shape[2:]).mean(axis=(1, 3))
+
+
+def downscale_depth(depth: np.ndarray, f: int) -> np.ndarray:
+    """Depth [H,W] (0 = invalid) downscaled by f: the mean of each f x f block's valid values, 0 when a block has
+    fewer than half valid or spans a depth edge (max/min > 1.1), so no depth is invented across discontinuities."""
+    if f == 1:
+        return depth
+    H, W = depth.shape[0] // f, depth.shape[1] // f
+    b = depth[: H * f, : W * f].reshape(H, f, W, f).transpose(0, 2, 1, 3).reshape(H, W, f * f)
+    valid = b > 0
+    n = valid.sum(-1)
+    mean = np.where(n > 0, b.sum(-1) / np.maximum(n, 1), 0.0)
+    mx = b.max(-1)
+    mn = np.where(valid, b, np.inf).min(-1)
+    ok = (n * 2 >= f * f) & (mx <= 1.1 * mn)
+    return np.where(ok, mean, 0.0).astype(np.float32)
+
+
+def load_frame(stream: RGBDStream, i: int, downscale: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Frame i as (rgb float32 [h,w,3] in [0,1], depth float32 [h,w] metres, 0 = invalid), downscaled by an
+    integer factor (box filter; depth edge-aware, see downscale_depth). Wrong sizes raise naming the file."""
+    fr = stream.frames[i]
+    img = read_image(fr.color_path)
+    if img.shape[:2] != (stream.height, stream.width):
+        raise ValueError(
+            f"{fr.color_path}: colour is {img.shape[1]}x{img.shape[0]} but the stream is {stream.width}x{stream.height}"
+        )
+    raw = read_depth_raw(fr.depth_path)
+    if raw.shape != (stream.height, stream.width):
+        raise ValueError(
+            f"{fr.depth_path}: depth is {raw.shape[1]}x{raw.shape[0]} but the colour image {fr.color_path.name} is "
+            f"{stream.width}x{stream.height} (depth must be registered to colour)"
+        )
+    invalid = np.isin(raw, INVALID_DEPTH_RAW) | ~np.isfinite(raw)
+    depth = np.where(invalid, 0.0, raw * stream.depth_scale).astype(np.float32)
+    rgb = img[..., :3].astype(np.float32) / 255.0
+    if downscale > 1:
+        rgb = _box_down(rgb, downscale).astype(np.float32)
+        depth = downscale_depth(depth, downscale)
+    return rgb, depth
+
+
+__all__ = [
+    "RGBDStream",
+    "StreamFrame",
+    "open_stream",
+    "load_frame",
+    "read_tum",
+    "read_sevenscenes",
+    "read_redwood",
+    "detect_stream_format",
+    "downscale_depth",
+]
