@@ -298,7 +298,7 @@ def hard_resolve(uvz, order, pos, faces, w2c, colors, fid, width, height, perspe
 
 
 def rasterize_hard(positions, faces, colors, world_to_camera, K, width, height, background=None, near: float = 0.01,
-                   perspective_correct: bool = False, supersample: int = 1) -> RenderOutput:
+                   perspective_correct: bool = False, supersample: int = 1, backend: str = "numba") -> RenderOutput:
     """Opaque z-buffer render: each pixel centre shows the nearest face covering it (no gradients).
 
     supersample s > 1: each pixel is the mean of an s x s grid of such samples (supersampling anti-aliasing, the
@@ -309,12 +309,19 @@ def rasterize_hard(positions, faces, colors, world_to_camera, K, width, height, 
     with screen-space barycentrics (perspective-correct on request). Returns RenderOutput: rgb, alpha (0/1; the
     covered share of the samples when supersampled), depth (view depth, 0 where empty), normal (camera-facing unit
     face normal, camera frame), face_id (-1 where empty), max_weight (1 for faces that win at least one sample),
-    pairs_evaluated (sample/face depth tests).
+    pairs_evaluated (sample/face depth tests). backend: 'numba' (CPU) or 'warp' (NVIDIA Warp kernels on the tensors'
+    device, see render.warp_backend; needs the gpu extra).
     """
     vi = validate(positions, faces, colors, None, 1.0, world_to_camera, K, width, height, background)
     if not near > 0:
         raise ValueError(f"near must be > 0, got {near}")
     ss = check_supersample(supersample)
+    if backend == "warp":
+        from trisplat.render.warp_backend import rasterize_hard_warp
+
+        return rasterize_hard_warp(vi, float(near), bool(perspective_correct), ss)
+    if backend != "numba":
+        raise ValueError(f"backend must be 'numba' or 'warp', got {backend!r}")
     outs = []
     with torch.no_grad():
         pos = vi.positions.detach().to(torch.float32).cpu().numpy()

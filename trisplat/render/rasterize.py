@@ -27,6 +27,10 @@ def _render_view(positions, faces, colors, opacities, sigma, w2c, K, width, heig
         from trisplat.render.reference import render_reference
 
         out = render_reference(positions, faces, colors, opacities, sigma, w2c, K, W, H, bg, opts)
+    elif opts.backend == "warp":
+        from trisplat.render.warp_backend import render_warp
+
+        out = render_warp(positions, faces, colors, opacities, sigma, w2c, K, W, H, bg, opts)
     else:
         from trisplat.render.splat import render_numba
 

@@ -18,7 +18,8 @@ class RenderOptions:
     opacity_mode: 'min' (Triangle Splatting+: the arg-min vertex gets the gradient) or 'mean' (SLAM variant).
     perspective_correct: interpolate colours with perspective-correct barycentrics instead of screen-space ones.
     alpha_max: cap on per-pixel alpha (0.99). alpha_min: skip below (1/255). transmittance_min: early stop (1e-4).
-    backend: 'numba' (CPU kernels) or 'reference' (dense PyTorch, the spec in code; slow, for tests).
+    backend: 'numba' (CPU kernels), 'warp' (NVIDIA Warp kernels on the tensors' device: CUDA, or Warp's CPU device;
+    needs the gpu extra) or 'reference' (dense PyTorch, the spec in code; slow, for tests).
     min_area_px: faces whose projected area is below this (square pixels) are culled as degenerate.
     grazing_cos: faces seen edge-on, |cos(face normal, ray to centroid)| below this (unitless), are culled.
     reference_block: pixel block edge (pixels) of the dense reference (memory per block ~ faces x block^2).
