@@ -12,6 +12,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "render": ("trisplat.commands.render", "render a trained run's split to PNGs (hard mode by default)"),
     "eval": ("trisplat.commands.eval", "render a split, score it (PSNR/SSIM/LPIPS), write metrics.json + report"),
     "info": ("trisplat.commands.info", "summarise a capture folder (format, cameras, splits, points)"),
+    "poses": ("trisplat.commands.poses", "photos or a video without poses -> a COLMAP capture (SfM, pycolmap)"),
     "compare": ("trisplat.commands.compare", "PSNR, SSIM, LPIPS between two images, as JSON"),
     "mesh": ("trisplat.commands.mesh", "restricted Delaunay: turn a trained soup into a connected mesh"),
     "mesh-stats": ("trisplat.commands.mesh_stats", "statistics of a mesh file (manifoldness, valence, ...)"),
