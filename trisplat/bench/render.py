@@ -7,6 +7,7 @@ import subprocess
 import sys
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import tyro
@@ -30,6 +31,11 @@ class BenchRenderConfig:
     """Window sharpness used for the soft renders."""
     reference: bool = True
     """Also time the dense PyTorch reference where it fits (100k faces at 256x256 takes about a minute)."""
+    backend: Literal["numba", "warp"] = "numba"
+    """Renderer timed (soft and hard): numba (CPU kernels) or warp (NVIDIA Warp kernels on --device; gpu extra).
+    Results go to render.json/.md for numba, render_warp.json/.md for warp."""
+    device: Literal["auto", "cpu", "cuda"] = "auto"
+    """Where the scene tensors live for the warp backend (auto: cuda when torch sees a GPU). numba runs on the CPU."""
     case: str = ""
     """Internal: run a single case 'W,H,F,lo,hi,ref' and print JSON (used to isolate peak memory per case)."""
 
@@ -70,26 +76,36 @@ def _current_rss_mb() -> float:
         return float("nan")
 
 
-def _run_case(width: int, height: int, n: int, lo: float, hi: float, with_ref: bool, repeats: int, sigma: float):
+def _run_case(width: int, height: int, n: int, lo: float, hi: float, with_ref: bool, repeats: int, sigma: float,
+              backend: str = "numba", device: str = "cpu"):
     import torch
 
     from trisplat.bench.common import median_ms, peak_rss_mb
     from trisplat.render import rasterize, rasterize_hard
 
+    dev = torch.device(device)
+    sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)  # time finished work, not launches
     pos, faces, col, op, w2c, K = random_triangles(n, width, height, (lo, hi))
-    P = torch.from_numpy(pos).requires_grad_()
-    C = torch.from_numpy(col).requires_grad_()
-    O = torch.from_numpy(op).requires_grad_()
-    g = torch.rand(height, width, 3)
+    if dev.type != "cpu":
+        pos, faces, col, op = (torch.from_numpy(a).to(dev) for a in (pos, faces, col, op))
+        w2c, K = torch.as_tensor(w2c, device=dev), torch.as_tensor(K, device=dev)
+    P = torch.as_tensor(pos).requires_grad_()
+    C = torch.as_tensor(col).requires_grad_()
+    O = torch.as_tensor(op).requires_grad_()
+    g = torch.rand(height, width, 3, device=dev)
+    main_backend = backend
 
-    def fwd(backend="numba"):
+    def fwd(backend=main_backend):
         with torch.no_grad():
-            return rasterize(P, faces, C, O, sigma, w2c, K, width, height, backend=backend)
+            out = rasterize(P, faces, C, O, sigma, w2c, K, width, height, backend=backend)
+        sync()
+        return out
 
-    def fwd_bwd(backend="numba"):
+    def fwd_bwd(backend=main_backend):
         out = rasterize(P, faces, C, O, sigma, w2c, K, width, height, backend=backend)
         ((out.rgb * g).sum() + out.alpha.sum() + out.depth.sum() + out.normal.sum()).backward()
         P.grad = C.grad = O.grad = None
+        sync()
         return out
 
     row = {"size": f"{width}x{height}", "faces": n, "px": f"{lo:g}-{hi:g}", "base_rss_mb": _current_rss_mb()}
@@ -99,7 +115,7 @@ def _run_case(width: int, height: int, n: int, lo: float, hi: float, with_ref: b
     row["fwd_ms"] = median_ms(fwd, repeats=repeats)
     row["fwd_bwd_ms"] = median_ms(fwd_bwd, repeats=repeats)
     row["peak_rss_mb"] = peak_rss_mb()  # the soft renderer's peak, before the hard mode runs in this process
-    hard = lambda: rasterize_hard(pos, faces, col, w2c, K, width, height)  # noqa: E731
+    hard = lambda: (rasterize_hard(pos, faces, col, w2c, K, width, height, backend=backend), sync())  # noqa: E731
     row["hard_ms"] = median_ms(hard, repeats=repeats)
     row["hard_fps"] = 1000.0 / row["hard_ms"]
     row["hard_peak_rss_mb"] = peak_rss_mb()
@@ -120,7 +136,13 @@ def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     if cfg.case:
         w, h, n, lo, hi, ref = cfg.case.split(",")
-        row = _run_case(int(w), int(h), int(n), float(lo), float(hi), ref == "1", cfg.repeats, cfg.sigma)
+        device = "cpu"
+        if cfg.backend == "warp":
+            from trisplat.render.warp_backend import resolve_device
+
+            device = resolve_device(cfg.device).type
+        row = _run_case(int(w), int(h), int(n), float(lo), float(hi), ref == "1", cfg.repeats, cfg.sigma, cfg.backend,
+                        device)
         print("RESULT " + json.dumps(row))
         return 0
     from tqdm import tqdm
@@ -130,12 +152,26 @@ def main(argv: list[str] | None = None) -> int:
     cols = ["image", "faces", "tri px", "pairs evaluated", "fwd ms", "fwd+bwd ms", "peak RSS MB", "RSS before MB",
             "ref fwd+bwd ms",
             "ref peak RSS MB", "speed-up vs ref", "hard ms", "hard FPS", "peak RSS with hard MB"]
-    table = BenchTable("render", cols)
+    table = BenchTable("render" if cfg.backend == "numba" else f"render_{cfg.backend}", cols)
     cases = CASES[:3] if cfg.quick else CASES
+    if cfg.backend == "warp":
+        from trisplat.render.warp_backend import available, device_name, resolve_device
+
+        if not available():
+            from trisplat.render.warp_backend import INSTALL_HINT
+
+            print(f"trisplat bench render: {INSTALL_HINT}", file=sys.stderr)
+            return 1
+        dev = resolve_device(cfg.device)
+        table.notes.append(f"Backend warp (NVIDIA Warp kernels) on device {device_name(dev)}; the dense reference "
+                           "runs on the same device. Warp's CPU device runs kernels on one thread.")
+    else:
+        dev = None
     for w, h, n, lo, hi in tqdm(cases, desc="bench render"):
         ref = cfg.reference and n <= REFERENCE_MAX_FACES and w * h <= REFERENCE_MAX_PIXELS
         cmd = [sys.executable, "-m", "trisplat.bench.render", "--case", f"{w},{h},{n},{lo},{hi},{int(ref)}",
-               "--repeats", str(cfg.repeats), "--sigma", str(cfg.sigma)]
+               "--repeats", str(cfg.repeats), "--sigma", str(cfg.sigma), "--backend", cfg.backend,
+               "--device", str(dev.type if dev is not None else "cpu")]
         proc = subprocess.run(cmd, capture_output=True, text=True)
         lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")]
         if proc.returncode != 0 or not lines:

@@ -272,3 +272,27 @@ def rasterize_hard_warp(vi, near: float, perspective_correct: bool, ss: int) -> 
                         face_id=torch.stack([o.face_id for o in outs]),
                         pairs_evaluated=sum(o.pairs_evaluated for o in outs),
                         faces_visible=sum(o.faces_visible for o in outs))
+
+
+DEVICE_CHOICES = ("auto", "cpu", "cuda")
+
+
+def resolve_device(name: str) -> torch.device:
+    """A --device choice as a torch device: 'cpu', 'cuda' (ValueError when torch sees no CUDA device: a CUDA build
+    of torch and a GPU are needed, since tensors are shared with Warp without copies) or 'auto' (cuda when torch
+    sees a GPU, else cpu)."""
+    if name not in DEVICE_CHOICES:
+        raise ValueError(f"device must be one of {DEVICE_CHOICES}, got {name!r}")
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise ValueError("device 'cuda' asked for, but torch sees no CUDA device (a CUDA build of torch and an NVIDIA "
+                         "GPU are needed; trisplat installs CPU torch by default)")
+    return torch.device(name)
+
+
+def device_name(device: torch.device) -> str:
+    """What a device is, in words, for benchmark notes ('cpu', or the GPU's name)."""
+    if device.type == "cuda":
+        return f"{device} ({torch.cuda.get_device_name(device)})"
+    return str(device)

@@ -23,7 +23,9 @@ import warp as wp
 
 from trisplat.render.kernels import N_THETA, T_COL, T_INVR, T_NRM, T_OP, T_S, T_ZI
 
-wp.config.quiet = True
+if wp.config.log_level < wp.LOG_WARNING:  # no greeting or per-module load lines from the library
+    wp.config.log_level = wp.LOG_WARNING
+wp.set_module_options({"enable_backward": False})  # gradients are written by hand below (about half the build time)
 
 # Re-exported as Warp constants so the kernels can index THETA by name.
 _T_INVR = wp.constant(T_INVR)
