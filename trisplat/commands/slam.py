@@ -1,0 +1,43 @@
+"""`trisplat slam CAPTURE --out RUN`: RGB-D SLAM with triangles: poses, map, mesh from a raw RGB-D stream."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import tyro
+
+from trisplat.slam.system import SlamConfig
+
+
+@dataclass
+class SlamArgs:
+    """Track an RGB-D stream's camera poses and map it with triangles (Triangle Splatting SLAM), online, frames in
+    order; poses in the capture, if any, only score the result (ATE). Writes RUN/trajectory.txt (TUM format),
+    RUN/model.ply, RUN/mesh.ply (connected), RUN/metrics.json and a checkpoint for --resume."""
+
+    capture: tyro.conf.Positional[Path]
+    """RGB-D capture folder: TUM (rgb.txt + depth.txt), 7-Scenes/3DMatch (frame-NNNNNN.color/.depth), Redwood"""
+    out: Path
+    """run directory"""
+    depth_scale: float | None = None
+    """metres per raw depth unit (default per format: TUM 1/5000, 7-Scenes and Redwood 1/1000)"""
+    resume: bool = False
+    """continue from RUN/checkpoint.pt"""
+    slam: SlamConfig = field(default_factory=SlamConfig)
+
+
+def main(argv: list[str]) -> int:
+    args = tyro.cli(SlamArgs, args=argv, prog="trisplat slam", description=__doc__)
+    import torch
+
+    from trisplat.data.rgbd_stream import open_stream
+    from trisplat.slam.system import run_slam
+
+    torch.set_num_threads(max(1, torch.get_num_threads()))
+    stream = open_stream(args.capture, depth_scale=args.depth_scale)
+    print(f"{stream.format} stream: {len(stream)} frames {stream.width}x{stream.height}, processing at "
+          f"1/{args.slam.downscale}; reference poses: {'yes' if stream.has_reference else 'no'}", flush=True)
+    for w in stream.warnings:
+        print(f"warning: {w}", flush=True)
+    run_slam(stream, args.out, args.slam, resume=args.resume)
+    return 0

@@ -1,0 +1,113 @@
+"""Mapping: joint refinement of the map's triangles over a window of keyframes with photometric (L1 + D-SSIM),
+depth L1, normal-alignment and equiangularity terms."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from trisplat.slam.map import SlamMap
+from trisplat.train.losses import depth_to_normal, photometric
+
+
+@dataclass
+class MapConfig:
+    iters: int = 25
+    """refinement iterations per keyframe (count)"""
+    first_iters: int = 60
+    """iterations after the first keyframe (count)"""
+    window: int = 5
+    """keyframes in the refinement window: the newest ones (count); half the iterations use the newest keyframe"""
+    lr_position: float = 2e-4
+    """Adam step of vertex positions (metres)"""
+    lr_color: float = 1e-2
+    """Adam step of the SH DC colour coefficients"""
+    lr_opacity: float = 5e-2
+    """Adam step of the opacity logits"""
+    lambda_dssim: float = 0.2
+    w_color: float = 0.5
+    w_depth: float = 1.0
+    """depth L1 weight (per metre)"""
+    w_normal: float = 0.05
+    """weight of 1 - n_rendered . n_depth on covered pixels with a valid depth normal"""
+    w_equiangular: float = 0.01
+    """weight of the equiangularity penalty 1 - 4 sqrt(3) area / sum(edge^2) (0 for equilateral faces)"""
+    outlier_depth: float = 0.1
+    """pixels whose rendered and observed depths differ by more than this (metres) carry no depth/normal term"""
+
+
+@dataclass
+class Keyframe:
+    """A keyframe's observation at the processing resolution and its (tracked) camera-to-world."""
+
+    frame: int
+    rgb: torch.Tensor
+    depth: torch.Tensor
+    c2w: np.ndarray
+    normal: torch.Tensor | None = None
+    normal_ok: torch.Tensor | None = None
+
+
+def equiangularity(positions: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
+    """Per-face 1 - 4 sqrt(3) area / (a^2 + b^2 + c^2): 0 for equilateral triangles, 1 for degenerate ones [F]."""
+    t = positions[faces.long()]
+    e0, e1, e2 = t[:, 1] - t[:, 0], t[:, 2] - t[:, 1], t[:, 0] - t[:, 2]
+    area = 0.5 * torch.linalg.cross(e0, -e2, dim=1).norm(dim=1)
+    s = (e0 * e0).sum(1) + (e1 * e1).sum(1) + (e2 * e2).sum(1)
+    return 1.0 - 4.0 * np.sqrt(3.0) * area / s.clamp_min(1e-20)
+
+
+def keyframe_loss(smap: SlamMap, kf: Keyframe, K: torch.Tensor, sigma: float, cfg: MapConfig) -> torch.Tensor:
+    H, W = kf.depth.shape
+    out = smap.render(np.linalg.inv(kf.c2w), K, W, H, sigma)
+    if kf.normal is None:
+        kf.normal, kf.normal_ok = depth_to_normal(kf.depth.double(), K)
+        kf.normal = kf.normal.float()
+    alpha = out.alpha
+    surf = out.depth / alpha.clamp_min(1e-6)
+    valid = kf.depth > 0
+    with torch.no_grad():
+        mask = valid & (alpha > 0.5) & ((surf - kf.depth).abs() < cfg.outlier_depth)
+    n = mask.sum().clamp_min(1)
+    loss = cfg.w_color * photometric(out.rgb, kf.rgb, cfg.lambda_dssim)
+    loss = loss + cfg.w_depth * ((surf - kf.depth).abs() * mask).sum() / n
+    # Observed surface not covered: pull alpha up there (depth says something is there).
+    loss = loss + cfg.w_depth * 0.1 * ((1 - alpha) * valid).sum() / valid.sum().clamp_min(1)
+    nm = mask & kf.normal_ok
+    if cfg.w_normal > 0 and bool(nm.any()):
+        loss = loss + cfg.w_normal * ((alpha - (out.normal * kf.normal).sum(-1)) * nm).sum() / nm.sum()
+    return loss
+
+
+def refine(smap: SlamMap, keyframes: list[Keyframe], K: np.ndarray, sigma: float, iters: int, cfg: MapConfig,
+           rng: np.random.Generator, sigma_end: float | None = None, window: int | None = None) -> float:
+    """Refine positions, colours and opacities over the newest `window` keyframes (all when window is 0);
+    sigma moves linearly to sigma_end when given (the soft-to-hard schedule). Returns the last loss."""
+    if smap.num_faces == 0 or not keyframes or iters <= 0:
+        return float("nan")
+    sc = smap.scene
+    for t in (sc.positions, sc.sh, sc.opacity_logit):
+        t.requires_grad_(True)
+    opt = torch.optim.Adam([
+        {"params": [sc.positions], "lr": cfg.lr_position},
+        {"params": [sc.sh], "lr": cfg.lr_color},
+        {"params": [sc.opacity_logit], "lr": cfg.lr_opacity},
+    ])
+    win = cfg.window if window is None else window
+    pool = keyframes[-win:] if win > 0 else keyframes
+    Kt = torch.as_tensor(K, dtype=torch.float64)
+    last = float("nan")
+    for it in range(iters):
+        kf = pool[-1] if (it % 2 == 0 or len(pool) == 1) else pool[int(rng.integers(len(pool)))]
+        sig = sigma if sigma_end is None else sigma + (sigma_end - sigma) * it / max(1, iters - 1)
+        loss = keyframe_loss(smap, kf, Kt, sig, cfg)
+        if cfg.w_equiangular > 0:
+            loss = loss + cfg.w_equiangular * equiangularity(sc.positions, sc.faces).mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        last = float(loss.detach())
+    for t in (sc.positions, sc.sh, sc.opacity_logit):
+        t.requires_grad_(False)
+    return last

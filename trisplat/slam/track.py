@@ -1,0 +1,129 @@
+"""Tracking: one frame's camera pose by minimising photometric (L1 + D-SSIM) and depth L1 losses through the
+differentiable renderer, coarse to fine, with Adam on an se(3) increment and a convergence test.
+
+Where the pose gradient comes from: the map's vertices are moved into the camera frame in torch,
+p_cam = exp(xi) (R0 p + t0), and rendered with an identity world_to_camera, so d loss / d xi is autograd of the
+renderer's exact position gradients through exp_se3 (`trisplat.slam.se3`), not an image-gradient approximation.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from trisplat.render.rasterize import rasterize
+from trisplat.slam.se3 import exp_se3
+from trisplat.train.losses import photometric
+
+IDENTITY = torch.eye(4, dtype=torch.float64)
+
+
+@dataclass
+class TrackConfig:
+    """Tracking settings. Levels are extra downscale factors of the processing resolution, coarse to fine."""
+
+    levels: tuple[int, ...] = (4, 2, 1)
+    max_iters: tuple[int, ...] = (30, 25, 15)
+    """iteration cap per level (count); a level stops earlier once converged"""
+    lr_translation: float = 2e-3
+    """Adam step of the translation increment at the coarsest level (metres)"""
+    lr_rotation: float = 2e-3
+    """Adam step of the rotation increment at the coarsest level (radians)"""
+    lr_level_decay: float = 0.5
+    """learning rates are multiplied by this at each finer level (unitless)"""
+    lambda_dssim: float = 0.2
+    w_color: float = 0.5
+    """weight of the photometric term (unitless, colours in [0,1])"""
+    w_depth: float = 1.0
+    """weight of the depth L1 term (per metre)"""
+    min_alpha: float = 0.9
+    """pixels count only where the rendered alpha exceeds this (well-covered pixels)"""
+    outlier_depth: float = 0.1
+    """pixels whose rendered and observed depths differ by more than this (metres) are ignored"""
+    tol: float = 1e-4
+    """converged when the loss fell by less than this fraction over `patience` iterations ..."""
+    patience: int = 4
+    min_step: float = 2e-6
+    """... or when an iteration moved the pose by less than this (metres / radians)"""
+
+
+@dataclass
+class TrackResult:
+    w2c: np.ndarray
+    loss: float
+    iterations: int
+    converged: bool
+    coverage: float
+    """fraction of valid-depth pixels that were well covered at the finest level"""
+
+
+def pose_loss(pos_cam: torch.Tensor, faces, colors, opacities, sigma: float, rgb: torch.Tensor, depth: torch.Tensor,
+              K: torch.Tensor, cfg: TrackConfig, supersample: int = 1) -> tuple[torch.Tensor, float]:
+    """Tracking loss of camera-frame vertex positions [V,3] against one observation (rgb [H,W,3], depth [H,W] metres,
+    0 invalid); returns (loss, coverage). Coarse levels render `supersample` x finer and box-filter down, so the
+    map's small triangles cover the coarse pixels as they cover the fine ones."""
+    H, W = depth.shape
+    out = rasterize(pos_cam, faces, colors, opacities, torch.tensor(float(sigma)), IDENTITY, K, W, H,
+                    opacity_mode="mean", supersample=supersample)
+    alpha = out.alpha
+    surf = out.depth / alpha.clamp_min(1e-6)
+    valid = depth > 0
+    with torch.no_grad():
+        covered = alpha > cfg.min_alpha
+        mask = valid & covered & ((surf - depth).abs() < cfg.outlier_depth)
+        coverage = float(mask.sum()) / max(1, int(valid.sum()))
+    if not bool(mask.any()):
+        return out.rgb.sum() * 0.0, 0.0
+    n = mask.sum()
+    l_depth = ((surf - depth).abs() * mask).sum() / n
+    pm = torch.where((covered & (alpha > 0))[..., None], out.rgb, rgb)  # uncovered pixels contribute nothing
+    l_rgb = photometric(pm, rgb, cfg.lambda_dssim) * (H * W) / n
+    return cfg.w_color * l_rgb + cfg.w_depth * l_depth, coverage
+
+
+def track_frame(positions: torch.Tensor, faces: torch.Tensor, colors: torch.Tensor, opacities: torch.Tensor,
+                sigma: float, pyramid: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]], w2c_init: np.ndarray,
+                cfg: TrackConfig) -> TrackResult:
+    """Estimate world_to_camera [4,4] of one frame. pyramid: per level of cfg.levels, (rgb [h,w,3], depth [h,w],
+    K [3,3] float64) of the observation. Map tensors are used detached."""
+    pos = positions.detach().double()
+    faces, colors, opacities = faces.detach(), colors.detach(), opacities.detach()
+    w2c = torch.as_tensor(w2c_init, dtype=torch.float64).clone()
+    total, converged_all, loss_v, coverage = 0, True, float("nan"), 0.0
+    for li, (rgb, depth, K) in enumerate(pyramid):
+        decay = cfg.lr_level_decay**li
+        pc0 = pos @ w2c[:3, :3].T + w2c[:3, 3]
+        v = torch.zeros(3, dtype=torch.float64, requires_grad=True)
+        w = torch.zeros(3, dtype=torch.float64, requires_grad=True)
+        opt = torch.optim.Adam([{"params": [v], "lr": cfg.lr_translation * decay},
+                                {"params": [w], "lr": cfg.lr_rotation * decay}])
+        hist: list[float] = []
+        best = (float("inf"), torch.zeros(6, dtype=torch.float64), 0.0)
+        converged = False
+        for _ in range(cfg.max_iters[li]):
+            xi = torch.cat([v, w])
+            T = exp_se3(xi)
+            pc = (pc0 @ T[:3, :3].T + T[:3, 3]).float()
+            loss, cov = pose_loss(pc, faces, colors, opacities, sigma, rgb, depth, K, cfg, cfg.levels[li])
+            lv = float(loss.detach())
+            total += 1
+            if lv < best[0]:
+                best = (lv, xi.detach().clone(), cov)
+            hist.append(lv)
+            if cov == 0.0:
+                break
+            opt.zero_grad()
+            loss.backward()
+            before = xi.detach().clone()
+            opt.step()
+            step = (torch.cat([v, w]).detach() - before).abs().max().item()
+            if step < cfg.min_step * decay or (
+                len(hist) > cfg.patience and hist[-cfg.patience - 1] - lv < cfg.tol * hist[-cfg.patience - 1]
+            ):
+                converged = True
+                break
+        converged_all &= converged
+        w2c = exp_se3(best[1]) @ w2c
+        loss_v, coverage = best[0], best[2]
+    return TrackResult(w2c.numpy(), loss_v, total, converged_all, coverage)
