@@ -20,6 +20,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "export": ("trisplat.commands.export", "export a trained run to PLY / OBJ / GLB (capture frame, Y- or Z-up)"),
     "extract": ("trisplat.commands.extract", "cut an object out of a trained mesh with 2D masks"),
     "view": ("trisplat.commands.view", "serve a local web viewer for a run or a mesh"),
+    "slam": ("trisplat.commands.slam", "RGB-D stream without poses -> trajectory, triangle map, mesh (SLAM)"),
     "bench": ("trisplat.commands.bench", "benchmarks: render | train | mesh (JSON + markdown table)"),
 }
 
