@@ -22,7 +22,8 @@ class TrainArgs:
     configuration can be overridden (--steps, --minutes, --max-vertices, --sh-degree, --downscale, ...)."""
 
     data: tyro.conf.Positional[Path]
-    """Capture folder (COLMAP, Blender/NeRF, instant-ngp transforms.json or RGB-D)."""
+    """Capture folder (COLMAP, Blender/NeRF, instant-ngp transforms.json or RGB-D), or a folder of photos / a video
+    without poses (posed first by `trisplat poses`, into a cache folder)."""
     out: Path
     """Run directory (created; an existing run is never overwritten without --force)."""
     preset: Literal[tuple(PRESETS)] = "default"  # type: ignore[valid-type]
@@ -91,12 +92,30 @@ def run_training(args: TrainArgs):
     return trainer.train()
 
 
+def pose_plain_photos(args: TrainArgs) -> TrainArgs:
+    """A folder of photos without poses (or a video) is posed by `trisplat poses` first, into a cache folder
+    outside it (trisplat.sfm.cache); the run then trains on that capture."""
+    from trisplat.data.capture import is_plain_image_folder
+    from trisplat.sfm import is_video
+
+    if not (is_video(args.data) or is_plain_image_folder(args.data)):
+        return args
+    from dataclasses import replace as _replace
+
+    from trisplat.sfm.cache import cache_folder, posed_capture
+
+    if args.resume:  # the run continues on the capture it was started with
+        return _replace(args, data=cache_folder(args.data))
+    return _replace(args, data=posed_capture(args.data, progress=not args.quiet))
+
+
 def main(argv: list[str]) -> int:
     preset = _preset_in(argv)
     default = TrainArgs(data=tyro.MISSING, out=tyro.MISSING, preset=preset,  # type: ignore[arg-type]
                         config=make_config(preset) if preset in PRESETS else TrainConfig())
     args = tyro.cli(TrainArgs, args=argv, default=default, description=TrainArgs.__doc__, prog=PROG,
                     config=(tyro.conf.OmitArgPrefixes,))
+    args = pose_plain_photos(args)
     try:
         result = run_training(args)
     except FileExistsError as exc:

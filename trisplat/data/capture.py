@@ -94,3 +94,20 @@ class RawCapture:
     object_bounds: np.ndarray | None = None
     warnings: list[str] = field(default_factory=list)
     source_files: list[Path] = field(default_factory=list)
+
+
+def is_plain_image_folder(root: Path) -> bool:
+    """True for a folder holding image files directly and no poses in any format trisplat reads (no COLMAP model,
+    no transforms*.json, no RGB-D layout): photos that `trisplat poses` must pose first."""
+    from trisplat.data.colmap import find_model_dir
+    from trisplat.data.rgbd import find_rgbd_layout
+    from trisplat.sfm.inputs import find_images
+
+    root = Path(root)
+    if not root.is_dir():
+        return False
+    if any((root / n).is_file() for n in ("transforms_train.json", "transforms.json", "rgb.txt")):
+        return False
+    if find_model_dir(root) is not None or find_rgbd_layout(root) is not None:
+        return False
+    return len(find_images(root)) > 0

@@ -1,0 +1,48 @@
+"""`trisplat train PHOTOS`: a plain photo folder is posed first into a cache folder outside it, then reused."""
+from __future__ import annotations
+
+import json
+
+from trisplat.data.capture import is_plain_image_folder
+from trisplat.sfm.cache import FINGERPRINT, cache_folder, posed_capture
+from trisplat.sfm.pipeline import REPORT, WORK
+
+
+def test_plain_image_folder_detection(tmp_path, synthetic_frames, synthetic_capture):
+    folder, _ = synthetic_frames
+    _, capture = synthetic_capture
+    assert is_plain_image_folder(folder)
+    assert not is_plain_image_folder(capture)  # it has sparse/0
+    assert not is_plain_image_folder(capture / "images" / "frame_000.png")  # a file
+    (tmp_path / "transforms.json").write_text("{}")
+    (tmp_path / "a.png").write_bytes((folder / "frame_000.png").read_bytes())
+    assert not is_plain_image_folder(tmp_path)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert not is_plain_image_folder(empty)
+
+
+def test_train_on_photos_poses_into_the_cache_once(tmp_path, monkeypatch, synthetic_frames):
+    from trisplat.commands.train import make_train_args, pose_plain_photos
+
+    folder, cams = synthetic_frames
+    before = sorted(p.name for p in folder.iterdir())
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    messages: list[str] = []
+    args = make_train_args(folder, tmp_path / "run", preset="fast")
+    posed = pose_plain_photos(args)
+    capture = posed.data
+    assert capture == cache_folder(folder) and capture.is_relative_to(tmp_path / "xdg" / "trisplat" / "poses")
+    assert (capture / "sparse" / "0").is_dir() and (capture / REPORT).is_file()
+    assert json.loads((capture / REPORT).read_text())["registered_fraction"] == 1.0
+    assert sorted(p.name for p in folder.iterdir()) == before  # nothing written into the photos' folder
+    # a second run reuses the cached capture (and says so) instead of running SfM again
+    stamp = (capture / REPORT).stat().st_mtime_ns
+    assert posed_capture(folder, log=messages.append, progress=False) == capture
+    assert "earlier" in messages[0] and (capture / REPORT).stat().st_mtime_ns == stamp
+    # resuming maps the photos to the same capture without running anything
+    resumed = pose_plain_photos(make_train_args(folder, tmp_path / "run", preset="fast", resume=True))
+    assert resumed.data == capture
+    # changed photos invalidate the cache
+    fp = json.loads((capture / WORK / FINGERPRINT).read_text())
+    assert [f[0] for f in fp["files"]] == [f"{c.name}.png" for c in cams]

@@ -1,0 +1,63 @@
+"""Poses for `trisplat train PHOTOS`: run `poses` once into a cache folder (never inside the user's folder), reuse it."""
+from __future__ import annotations
+
+import hashlib
+import json
+import sys
+from collections.abc import Callable
+from dataclasses import asdict, replace
+from pathlib import Path
+
+from trisplat.sfm.inputs import find_images, is_video
+from trisplat.sfm.pipeline import REPORT, WORK, PosesOptions, run_poses
+
+FINGERPRINT = "source.json"  # in OUT/distorted: what the cached capture was computed from
+
+
+def default_poses_cache() -> Path:
+    """$XDG_CACHE_HOME/trisplat/poses (or ~/.cache/trisplat/poses)."""
+    from trisplat.data.options import default_cache_dir
+
+    return default_cache_dir() / "poses"
+
+
+def fingerprint(source: Path, options: PosesOptions) -> dict:
+    """The input files (name, size, modification time) and the settings: a cached capture is reused while equal."""
+    source = Path(source).resolve()
+    files = [source] if is_video(source) else find_images(source)
+    opts = asdict(replace(options, force=False, verbose=False))
+    return {"source": str(source), "files": [[p.name, p.stat().st_size, p.stat().st_mtime_ns] for p in files],
+            "options": opts}
+
+
+def cache_folder(source: Path, cache_root: Path | None = None) -> Path:
+    """CACHE/<name>-<hash of the absolute path>: one capture per photo folder or video (outside it)."""
+    source = Path(source).resolve()
+    root = Path(cache_root) if cache_root is not None else default_poses_cache()
+    folder = root / f"{source.stem}-{hashlib.sha1(str(source).encode()).hexdigest()[:10]}"
+    if folder.resolve().is_relative_to(source) if source.is_dir() else False:
+        raise ValueError(f"the poses cache {root} lies inside the photo folder {source}: set XDG_CACHE_HOME elsewhere")
+    return folder
+
+
+def posed_capture(source: Path, options: PosesOptions | None = None, cache_root: Path | None = None,
+                  progress: bool = True, log: Callable[[str], None] | None = None) -> Path:
+    """A COLMAP capture of the photos (or video) `source`: the cached one when its fingerprint still matches,
+    else `run_poses` into the cache folder first. Returns the capture folder."""
+    say = log or (lambda msg: print(msg, file=sys.stderr, flush=True))
+    opts = options or PosesOptions()
+    out = cache_folder(source, cache_root)
+    want = fingerprint(source, opts)
+    stamp = out / WORK / FINGERPRINT
+    if (out / REPORT).is_file() and stamp.is_file():
+        try:
+            same = json.loads(stamp.read_text()) == json.loads(json.dumps(want))
+        except ValueError:
+            same = False
+        if same:
+            say(f"{source} has no poses: using the capture `trisplat poses` made of it earlier, {out}")
+            return out
+    say(f"{source} has no poses: running `trisplat poses` first, into {out} (reused while the photos are unchanged)")
+    run_poses(source, out, replace(opts, force=True), progress=progress, log=log)
+    stamp.write_text(json.dumps(want, indent=1))
+    return out
