@@ -168,3 +168,16 @@ def test_missing_warp_fails_with_an_install_hint(monkeypatch):
     with pytest.raises(ImportError, match="trisplat\\[gpu\\]"):
         rasterize(pos, faces, col, op, SIGMA, w2c, K, 40, 32, backend="warp")
     assert "warp-lang" in INSTALL_HINT
+
+
+def test_device_choices_resolve_to_torch_devices_and_backends(monkeypatch):
+    from trisplat.render.warp_backend import backend_for, resolve_device
+
+    assert resolve_device("cpu") == torch.device("cpu") and backend_for(torch.device("cpu")) == "numba"
+    assert backend_for(torch.device("cuda", 0)) == "warp"
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert resolve_device("auto") == torch.device("cpu")
+    with pytest.raises(ValueError, match="no CUDA device"):
+        resolve_device("cuda")
+    with pytest.raises(ValueError, match="device must be one of"):
+        resolve_device("gpu")

@@ -24,6 +24,9 @@ class RenderArgs:
     supersample: int | None = None
     """samples per pixel side (anti-aliasing, 1-4; default: the run's eval_supersample, what its metrics used)"""
     force: bool = False
+    device: Literal["auto", "cpu", "cuda"] = "auto"
+    """cpu: the Numba kernels; cuda: the Warp kernels on the GPU (gpu extra and a CUDA build of torch); auto: cuda
+    when both are there"""
 
 
 def render_split(args: RenderArgs) -> list[Path]:
@@ -32,8 +35,15 @@ def render_split(args: RenderArgs) -> list[Path]:
     from trisplat.eval.report import write_png
     from trisplat.train.outputs import image_stem
 
+    import dataclasses
+
+    from trisplat.render.warp_backend import backend_for, resolve_device
+
     run = open_run(args.run)
     scene, _ = run.load_model()
+    dev = resolve_device(args.device)
+    scene = dataclasses.replace(scene, positions=scene.positions.to(dev), sh=scene.sh.to(dev),
+                                opacity_logit=scene.opacity_logit.to(dev), faces=scene.faces.to(dev))
     data = run.load_scene_data()
     sigma = soft_sigma(run) if args.mode == "soft" else None
     ss = eval_supersample(run) if args.supersample is None else args.supersample
@@ -45,7 +55,8 @@ def render_split(args: RenderArgs) -> list[Path]:
         path = args.out / f"{image_stem(cam, int(i))}.png"
         if path.exists() and not args.force:
             raise FileExistsError(f"{path} exists; pass --force to overwrite")
-        write_png(render_view(scene, cam, args.mode, data.background, sigma, supersample=ss), path)
+        write_png(render_view(scene, cam, args.mode, data.background, sigma, {"backend": backend_for(dev)},
+                              supersample=ss), path)
         written.append(path)
     return written
 

@@ -298,7 +298,7 @@ def hard_resolve(uvz, order, pos, faces, w2c, colors, fid, width, height, perspe
 
 
 def rasterize_hard(positions, faces, colors, world_to_camera, K, width, height, background=None, near: float = 0.01,
-                   perspective_correct: bool = False, supersample: int = 1, backend: str = "numba") -> RenderOutput:
+                   perspective_correct: bool = False, supersample: int = 1, backend: str | None = None) -> RenderOutput:
     """Opaque z-buffer render: each pixel centre shows the nearest face covering it (no gradients).
 
     supersample s > 1: each pixel is the mean of an s x s grid of such samples (supersampling anti-aliasing, the
@@ -310,12 +310,17 @@ def rasterize_hard(positions, faces, colors, world_to_camera, K, width, height, 
     covered share of the samples when supersampled), depth (view depth, 0 where empty), normal (camera-facing unit
     face normal, camera frame), face_id (-1 where empty), max_weight (1 for faces that win at least one sample),
     pairs_evaluated (sample/face depth tests). backend: 'numba' (CPU) or 'warp' (NVIDIA Warp kernels on the tensors'
-    device, see render.warp_backend; needs the gpu extra).
+    device, see render.warp_backend; needs the gpu extra); None: warp for CUDA tensors when Warp is installed, else
+    numba.
     """
     vi = validate(positions, faces, colors, None, 1.0, world_to_camera, K, width, height, background)
     if not near > 0:
         raise ValueError(f"near must be > 0, got {near}")
     ss = check_supersample(supersample)
+    if backend is None:
+        from trisplat.render.warp_backend import available
+
+        backend = "warp" if vi.positions.device.type == "cuda" and available() else "numba"
     if backend == "warp":
         from trisplat.render.warp_backend import rasterize_hard_warp
 

@@ -278,17 +278,24 @@ DEVICE_CHOICES = ("auto", "cpu", "cuda")
 
 
 def resolve_device(name: str) -> torch.device:
-    """A --device choice as a torch device: 'cpu', 'cuda' (ValueError when torch sees no CUDA device: a CUDA build
-    of torch and a GPU are needed, since tensors are shared with Warp without copies) or 'auto' (cuda when torch
-    sees a GPU, else cpu)."""
+    """A --device choice as a torch device. 'cpu'; 'cuda' (rendering there is the Warp backend: ValueError when
+    torch sees no CUDA device, since tensors are shared with Warp without copies and need a CUDA build of torch, or
+    when warp-lang is missing); 'auto': cuda when both are there, else cpu."""
     if name not in DEVICE_CHOICES:
         raise ValueError(f"device must be one of {DEVICE_CHOICES}, got {name!r}")
     if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+        return torch.device("cuda" if torch.cuda.is_available() and available() else "cpu")
     if name == "cuda" and not torch.cuda.is_available():
         raise ValueError("device 'cuda' asked for, but torch sees no CUDA device (a CUDA build of torch and an NVIDIA "
                          "GPU are needed; trisplat installs CPU torch by default)")
+    if name == "cuda" and not available():
+        raise ValueError(f"device 'cuda' renders with the Warp backend: {INSTALL_HINT}")
     return torch.device(name)
+
+
+def backend_for(device: torch.device) -> str:
+    """The renderer backend for tensors on `device`: warp on CUDA, numba (the parallel CPU kernels) on the CPU."""
+    return "warp" if torch.device(device).type == "cuda" else "numba"
 
 
 def device_name(device: torch.device) -> str:
