@@ -43,6 +43,7 @@ def test_train_on_photos_poses_into_the_cache_once(tmp_path, monkeypatch, synthe
     # resuming maps the photos to the same capture without running anything
     resumed = pose_plain_photos(make_train_args(folder, tmp_path / "run", preset="fast", resume=True))
     assert resumed.data == capture
-    # changed photos invalidate the cache
+    # the fingerprint that decides reuse lists every photo with its size and modification time
     fp = json.loads((capture / WORK / FINGERPRINT).read_text())
     assert [f[0] for f in fp["files"]] == [f"{c.name}.png" for c in cams]
+    assert fp["files"][0][1] == (folder / "frame_000.png").stat().st_size

@@ -12,13 +12,14 @@ SUITES: dict[str, tuple[str, str]] = {
     "train": ("trisplat.bench.train", "training wall time and test PSNR/SSIM/LPIPS on reference scenes"),
     "mesh": ("trisplat.bench.mesh", "soup-to-mesh time, mesh statistics and z-buffer frames per second"),
     "losses": ("trisplat.bench.losses", "training step kernels (losses, SH colour): fused Numba vs their torch twins"),
+    "poses": ("trisplat.bench.poses", "structure from motion on a capture's photos vs its own model (fox)"),
 }
 DEFAULT_OUT = Path("bench_results")
 INDEX_MD = "index.md"
 
 
 def _usage() -> str:
-    lines = ["usage: trisplat bench {render,train,mesh,losses,all} [options]   (trisplat bench SUITE --help for its options)",
+    lines = ["usage: trisplat bench {render,train,mesh,losses,poses,all} [options]   (trisplat bench SUITE --help for its options)",
              "", "Each suite writes <name>.json (with machine, versions, commit) and <name>.md into --out "
              f"(default {DEFAULT_OUT}/).", "", "suites:"]  # fmt: skip
     lines += [f"  {name:<8} {desc}" for name, (_, desc) in SUITES.items()]
