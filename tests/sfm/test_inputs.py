@@ -74,3 +74,30 @@ def test_out_inside_the_photo_folder_is_refused(tmp_path):
         _noise(tmp_path / f"ok_{i}.png", seed=i)
     with pytest.raises(ValueError, match="inside the input folder"):
         run_poses(tmp_path, tmp_path / "capture", progress=False, log=lambda m: None)
+
+
+def test_cli_reports_bad_input_in_one_line(tmp_path, capsys):
+    from trisplat.cli import main as cli_main
+
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    _noise(photos / "only.png")
+    assert cli_main(["poses", str(photos), "--out", str(tmp_path / "cap"), "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("trisplat poses: error: ") and "found 1: only.png" in err
+    assert not (tmp_path / "cap").exists()  # nothing written for rejected input
+
+
+def test_non_empty_out_is_refused_without_force(tmp_path, capsys):
+    from trisplat.cli import main as cli_main
+
+    for i in range(3):
+        _noise(tmp_path / f"ok_{i}.png", seed=i)
+    out = tmp_path.parent / f"{tmp_path.name}_out"
+    out.mkdir()
+    (out / "mine.txt").write_text("keep me")
+    assert cli_main(["poses", str(tmp_path), "--out", str(out), "--quiet"]) == 1
+    assert "is not empty; pass --force" in capsys.readouterr().err
+    assert cli_main(["poses", str(tmp_path), "--out", str(out), "--quiet", "--force"]) == 1
+    assert "not from `trisplat poses` (mine.txt)" in capsys.readouterr().err
+    assert (out / "mine.txt").read_text() == "keep me"
