@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import tyro
 
@@ -36,6 +37,9 @@ class TrainBenchArgs:
     """Where the benchmark's run directories (and generated scenes) go; existing runs are moved aside."""
     spot_size: int = 200
     """Image size of the generated Spot views."""
+    backend: Literal["numba", "warp"] = "numba"
+    """Soft renderer the runs train with (the config's backend): numba, or warp (NVIDIA Warp kernels, gpu extra; on
+    the trainer's device, the CPU here: Warp's CPU device is single-threaded). Warp results go to train_warp.*"""
 
 
 def _psnr_at_fractions(history: list[dict], fractions=(0.25, 0.5, 0.75)) -> list[str]:
@@ -109,7 +113,7 @@ def main(argv: list[str]) -> int:
     ]
     if geo:
         cols += ["Chamfer", "Chamfer/diag", "F@1%", "V/F", "boundary edges", "non-manifold edges", "non-manifold frac"]
-    table = BenchTable("train", cols)
+    table = BenchTable("train" if args.backend == "numba" else f"train_{args.backend}", cols)
     for name in args.scenes:
         if name not in SCENES:
             raise ValueError(f"unknown bench scene {name!r}; choose from {sorted(SCENES)}")
@@ -118,8 +122,10 @@ def main(argv: list[str]) -> int:
         if not data.exists():
             raise FileNotFoundError(f"{data}: benchmark data missing (pass --data-root)")
         for preset in args.presets:
-            run_dir = args.runs / f"{name}_{preset}_{args.minutes:g}min"
-            result = run_training(make_train_args(data, run_dir, preset, force=True, minutes=args.minutes, **opts))
+            tag = "" if args.backend == "numba" else f"_{args.backend}"
+            run_dir = args.runs / f"{name}_{preset}_{args.minutes:g}min{tag}"
+            result = run_training(make_train_args(data, run_dir, preset, force=True, minutes=args.minutes,
+                                                  backend=args.backend, **opts))
             m = result.metrics
             hist = open_run(run_dir).history()
             row = [
@@ -150,6 +156,7 @@ def main(argv: list[str]) -> int:
         "centre. Chamfer = mean of accuracy "
         "and completeness (DTU style) against the true surface, 200k area-uniform samples, seed 0."
     )
+    table.notes.append(f"Soft renderer (training): backend {args.backend}.")
     md = table.write(args.out, "trisplat bench train " + " ".join(argv))
     print(md.read_text())
     return 0
