@@ -93,13 +93,15 @@ def test_resume_reproduces_uninterrupted_run(tiny_scene, tmp_path):
 
 
 def test_refuses_to_overwrite_a_run(tiny_scene, tmp_path):
-    from trisplat.commands.train import prepare_run_dir
+    from trisplat.commands.train import move_aside, prepare_run_dir
 
     run_dir = tmp_path / "run"
     _trainer(tiny_scene, run_dir, steps=4).train(stop_after=2)
     with pytest.raises(FileExistsError, match="unfinished run"):
         prepare_run_dir(run_dir, resume=False, force=False)
-    prepare_run_dir(run_dir, resume=False, force=True)  # moved aside, not deleted
+    prepare_run_dir(run_dir, resume=False, force=True)  # with --force only checks: nothing moves yet
+    assert (run_dir / layout.CONFIG).exists()
+    move_aside(run_dir)  # after the inputs were checked: moved aside, not deleted
     assert not run_dir.exists()
     assert len(list(tmp_path.glob("run.old-*"))) == 1
 
@@ -227,3 +229,59 @@ def test_nan_rolls_back_with_lower_learning_rate_then_gives_up(tiny_scene, tmp_p
     assert tr2.rollbacks == MAX_ROLLBACKS + 1
     ckpt = torch.load(tmp_path / "nan2" / layout.CHECKPOINT, weights_only=False)
     assert all(torch.isfinite(v).all() for v in ckpt["params"].values())
+
+
+def test_repeated_rollbacks_keep_halving_and_are_forgiven_after_recovery(tiny_scene, tmp_path):
+    """Each rollback halves the learning rates again (restoring the last good state must not restore its scale),
+    and a run that got an epoch past the failed step starts a fresh count: NaNs at four separate places in a run
+    that recovers each time do not end it."""
+    from trisplat.train.trainer import MAX_ROLLBACKS
+
+    tr = _trainer(tiny_scene, tmp_path / "rb", steps=30, checkpoint_every_s=1e9)  # last good state: step 0
+    real_step = tr.train_step
+    poisoned, trace = [3, 4, 20, 28], []
+
+    def step_with_nan():
+        if poisoned and tr.step == poisoned[0]:
+            poisoned.pop(0)
+            with torch.no_grad():
+                tr.ts.params["sh_dc"][0, 0, 0] = float("nan")
+        info = real_step()
+        trace.append((tr.step, tr.rollbacks, tr.lr_scale))
+        return info
+
+    tr.train_step = step_with_nan
+    tr.finish = lambda: {}
+    result = tr.train()
+    assert result.steps == 30 and not poisoned
+    assert tr.lr_scale == 0.5**4  # old behaviour: 0.5 whatever the number of rollbacks
+    assert max(r for _, r, _ in trace) == 2 <= MAX_ROLLBACKS  # 3 and 4 without progress between them
+    n_train = len(tr.data.train_indices)
+    # forgiven one epoch after the failed step, so the rollback at 28 counts as the first of a new series
+    # (trace: the step index of a step and the count after it; the count is forgiven when the step index reaches
+    # failed step + one epoch, i.e. after the step with index 4 + n_train - 1)
+    assert [r for s, r, _ in trace if s == 4 + n_train - 1][0] == 2  # not yet forgiven
+    assert [r for s, r, _ in trace if s == 4 + n_train][0] == 0 and tr.rollbacks == 1
+
+
+def test_connect_switch_refuses_to_leave_zero_faces(tiny_scene, tmp_path, monkeypatch):
+    import trisplat.mesh.connect as connect_mod
+    from trisplat.scene.model import TriangleScene
+
+    def empty(scene, config=None):
+        return TriangleScene(scene.positions, scene.sh, scene.opacity_logit, torch.zeros(0, 3, dtype=torch.int32),
+                             scene.opacity_floor), None
+
+    monkeypatch.setattr(connect_mod, "connect_scene", empty)
+    import dataclasses
+
+    from trisplat.train.config import TrainConfig
+
+    # the restricted Delaunay switch (the configuration may offer other switch methods)
+    method = {"connect_method": "restricted_delaunay"} if "connect_method" in {
+        f.name for f in dataclasses.fields(TrainConfig)} else {}
+    tr = _trainer(tiny_scene, tmp_path / "c0", steps=10, connect_at=0.5, densify_until=0.45, **method)
+    with pytest.raises(RuntimeError, match="produced no faces"):
+        tr.train()
+    assert tr.ts.num_faces > 0  # the soup was kept, and so was the checkpoint
+    assert torch.load(tmp_path / "c0" / layout.CHECKPOINT, weights_only=True)["faces"].shape[0] > 0

@@ -86,9 +86,9 @@ def main(argv: list[str]) -> int:
     out = args.out
     run_dir = out / "run"
     if args.force and out.exists():
-        from trisplat.commands.train import prepare_run_dir
+        from trisplat.commands.train import move_aside
 
-        prepare_run_dir(out, resume=False, force=True)
+        move_aside(out)
     scene_dir = generate_scene(out, args.views, args.size, args.quiet)
     state = layout.open_run(run_dir).state if (run_dir / layout.CONFIG).exists() else None
     if state is None or not state.get("finished"):

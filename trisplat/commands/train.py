@@ -1,6 +1,8 @@
 """`trisplat train DATA --out RUN`: optimise triangles on a capture, with checkpoints, resume and exports."""
 from __future__ import annotations
 
+import dataclasses
+import json
 import shutil
 import sys
 import time
@@ -54,41 +56,106 @@ def _preset_in(argv: list[str]) -> str:
 
 
 def prepare_run_dir(out: Path, resume: bool, force: bool) -> None:
-    """Refuse to clobber a run; with --force move the old one aside (nothing the user had is lost)."""
+    """Refuse to clobber a run (checks only: nothing is moved; see `move_aside`). --resume needs a run: its
+    checkpoint, or at least its config.json (a run killed before its step-0 checkpoint starts over)."""
     if resume:
-        if not (out / layout.CHECKPOINT).exists():
-            raise FileNotFoundError(f"{out}: nothing to resume (no {layout.CHECKPOINT})")
+        if not (out / layout.CHECKPOINT).exists() and not (out / layout.CONFIG).exists():
+            raise FileNotFoundError(f"{out}: nothing to resume (no {layout.CHECKPOINT} and no {layout.CONFIG})")
         return
-    if out.exists() and any(out.iterdir()):
+    if out.exists() and not out.is_dir():
+        raise FileExistsError(f"{out} is a file, not a run directory")
+    if out.exists() and any(out.iterdir()) and not force:
         state = layout.open_run(out).state if (out / layout.CONFIG).exists() else {}
-        if not force:
-            what = "a finished run" if state.get("finished") else "an unfinished run (use --resume)" if state \
-                else "files"
-            raise FileExistsError(f"{out} already holds {what}; pass --force to start over (it is moved aside)")
-        backup = out.with_name(f"{out.name}.old-{time.strftime('%Y%m%d-%H%M%S')}")
-        shutil.move(str(out), str(backup))
-        print(f"moved the previous contents of {out} to {backup}", file=sys.stderr)
+        what = "a finished run" if state.get("finished") else "an unfinished run (use --resume)" if state \
+            else "files"
+        raise FileExistsError(f"{out} already holds {what}; pass --force to start over (it is moved aside)")
 
 
-def run_training(args: TrainArgs):
+def move_aside(out: Path) -> Path | None:
+    """With --force, after the inputs were checked: move a non-empty `out` to OUT.old-TIME (never deleted)."""
+    if not (out.exists() and any(out.iterdir())):
+        return None
+    backup = out.with_name(f"{out.name}.old-{time.strftime('%Y%m%d-%H%M%S')}")
+    shutil.move(str(out), str(backup))
+    print(f"moved the previous contents of {out} to {backup}", file=sys.stderr)
+    return backup
+
+
+# settings a resumed run takes from the command line: they change how it is run, not what is being optimised
+RESUME_OVERRIDABLE = ("minutes", "checkpoint_every_s", "log_every", "eval_max_views", "num_renders",
+                      "eval_supersample")
+
+
+def explicit_fields(argv: list[str]) -> set[str]:
+    """Names of the TrainConfig fields given on a command line (`--lr-position 1e-3`, `--no-final-max-weight-pass`,
+    `--minutes=5`)."""
+    names = {f.name for f in dataclasses.fields(TrainConfig)}
+    found = set()
+    for tok in argv:
+        if not tok.startswith("--"):
+            continue
+        key = tok[2:].split("=", 1)[0].replace("-", "_")
+        if key not in names and key.startswith("no_") and key[3:] in names:
+            key = key[3:]
+        if key in names:
+            found.add(key)
+    return found
+
+
+def resume_config(out: Path, saved: dict, given: TrainConfig, explicit: set[str]) -> TrainConfig:
+    """The saved configuration of a run with the explicitly given settings applied. Settings in RESUME_OVERRIDABLE
+    are honoured (--minutes: the whole run, time already spent included, fits into that many minutes); any other
+    setting that differs from the saved one is refused: the checkpoint was optimised with the saved values."""
+    cfg = TrainConfig.from_dict({k: v for k, v in saved.items() if k not in ("data", "data_options")})
+    changed = {k for k in explicit if getattr(given, k) != getattr(cfg, k)}
+    refused = sorted(changed - set(RESUME_OVERRIDABLE))
+    if refused:
+        what = ", ".join(f"--{k.replace('_', '-')} (saved {getattr(cfg, k)!r}, given {getattr(given, k)!r})"
+                         for k in refused)
+        raise ValueError(f"{out}: --resume continues the saved configuration and cannot change {what}; drop these "
+                         f"options, or start a new run with --force. A resumed run accepts "
+                         f"{', '.join('--' + k.replace('_', '-') for k in RESUME_OVERRIDABLE)}.")
+    return dataclasses.replace(cfg, **{k: getattr(given, k) for k in changed})
+
+
+def run_training(args: TrainArgs, explicit: set[str] | None = None):
+    """Train (or resume) `args.out`. `explicit`: the configuration fields the user set (the command line's; by
+    default those of args.config that differ from its preset)."""
     from trisplat.data import load_dataset
+    from trisplat.io.atomic import atomic_write_text
     from trisplat.train.trainer import Trainer
 
     out = args.out
     prepare_run_dir(out, args.resume, args.force)
+    resume = args.resume and (out / layout.CHECKPOINT).exists()
     if args.resume:
         run = layout.open_run(out)
-        cfg = TrainConfig.from_dict({k: v for k, v in run.config.items() if k not in ("data", "data_options")})
+        if explicit is None:
+            preset = make_config(args.preset)
+            explicit = {f.name for f in dataclasses.fields(TrainConfig)
+                        if getattr(args.config, f.name) != getattr(preset, f.name)}
+        cfg = resume_config(out, run.config, args.config, explicit)
         data_options = run.config.get("data_options", {})
         data_path = run.config["data"]
+        if args.data.resolve() != Path(data_path).resolve():
+            raise ValueError(f"{out} was trained on {data_path}, not {args.data}; --resume continues with the "
+                             "run's own capture")
     else:
         cfg = args.config
         data_options = {"downscale": cfg.downscale, "background": list(cfg.background), "test_every": cfg.test_every,
                         "format": cfg.data_format}
         data_path = str(args.data.resolve())
-    data = load_dataset(data_path, **data_options)
-    trainer = Trainer(cfg, data, out, resume=args.resume, show_progress=not args.quiet,
+    data = load_dataset(data_path, **data_options)  # inputs checked before anything in `out` changes
+    if args.resume and not resume:
+        print(f"{out}: no checkpoint yet (stopped during initialisation): starting it again with its saved "
+              "configuration", file=sys.stderr)
+    elif args.force:
+        move_aside(out)
+    trainer = Trainer(cfg, data, out, resume=resume, show_progress=not args.quiet,
                       data_options=data_options, data_path=data_path)
+    if resume and cfg != TrainConfig.from_dict({k: v for k, v in run.config.items()
+                                                 if k not in ("data", "data_options")}):
+        atomic_write_text(out / layout.CONFIG, json.dumps({**run.config, **cfg.to_dict()}, indent=2))
     return trainer.train()
 
 
@@ -117,7 +184,7 @@ def main(argv: list[str]) -> int:
                     config=(tyro.conf.OmitArgPrefixes,))
     args = pose_plain_photos(args)
     try:
-        result = run_training(args)
+        result = run_training(args, explicit_fields(argv))
     except FileExistsError as exc:
         print(f"trisplat train: {exc}", file=sys.stderr)
         return 1

@@ -14,6 +14,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from trisplat.io.atomic import atomic_write_text
+
 REPORT_HTML = "report.html"
 METRICS_JSON = "metrics.json"
 IMAGES_DIR = "images"
@@ -115,7 +117,7 @@ def write_metrics(out_dir: str | Path, metrics: SplitMetrics) -> Path:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     p = out / METRICS_JSON
-    p.write_text(json.dumps(json_safe(metrics.to_dict()), indent=2))
+    atomic_write_text(p, json.dumps(json_safe(metrics.to_dict()), indent=2))
     return p
 
 
@@ -317,5 +319,5 @@ def write_report(
         parts.append(f"<h2>Config</h2><pre id='config'>{e(json.dumps(json_safe(config), indent=2, default=str))}</pre>")
     parts.append("</body></html>")
     page = out / REPORT_HTML
-    page.write_text("\n".join(parts))
+    atomic_write_text(page, "\n".join(parts))
     return page

@@ -12,6 +12,7 @@ import numpy as np
 import trimesh
 from plyfile import PlyData, PlyElement
 
+from trisplat.io.atomic import atomic_target, atomic_write_bytes, atomic_write_text
 from trisplat.io.axes import up_rotation
 
 MTL_MATERIAL = "default"
@@ -41,13 +42,15 @@ def _write_ply(path: Path, positions: np.ndarray, faces: np.ndarray, rgb8: np.nd
         PlyElement.describe(vert, "vertex"),
         PlyElement.describe(face, "face", len_types={"vertex_indices": "u1"}),
     ]
-    PlyData(elements, text=False, byte_order="<", comments=["trisplat mesh"]).write(str(path))
+    with atomic_target(path) as tmp:
+        PlyData(elements, text=False, byte_order="<", comments=["trisplat mesh"]).write(str(tmp))
     return [path]
 
 
 def _write_obj(path: Path, positions: np.ndarray, faces: np.ndarray, rgb8: np.ndarray | None) -> list[Path]:
     mtl = path.with_suffix(".mtl")
-    mtl.write_text(
+    atomic_write_text(
+        mtl,
         f"# trisplat: colours are per vertex in {path.name}; this material only makes them visible\n"
         f"newmtl {MTL_MATERIAL}\nKa 0 0 0\nKd 1 1 1\nKs 0 0 0\nNs 1\nd 1\nillum 1\n"
     )
@@ -59,14 +62,14 @@ def _write_obj(path: Path, positions: np.ndarray, faces: np.ndarray, rgb8: np.nd
         lines += [f"v {x:.9g} {y:.9g} {z:.9g}" for x, y, z in positions.astype(np.float64).tolist()]
     lines.append(f"usemtl {MTL_MATERIAL}")
     lines += [f"f {a} {b} {c}" for a, b, c in (faces.astype(np.int64) + 1).tolist()]
-    path.write_text("\n".join(lines) + "\n")
+    atomic_write_text(path, "\n".join(lines) + "\n")
     return [path, mtl]
 
 
 def _write_glb(path: Path, positions: np.ndarray, faces: np.ndarray, rgb8: np.ndarray | None) -> list[Path]:
     colors = None if rgb8 is None else np.column_stack([rgb8, np.full(len(rgb8), 255, np.uint8)])
     mesh = trimesh.Trimesh(positions, faces, vertex_colors=colors, process=False)
-    path.write_bytes(_with_buffer_view_targets(mesh.export(file_type="glb")))
+    atomic_write_bytes(path, _with_buffer_view_targets(mesh.export(file_type="glb")))
     return [path]
 
 

@@ -19,6 +19,7 @@ import numpy as np
 import torch
 from plyfile import PlyData, PlyElement
 
+from trisplat.io.atomic import atomic_target
 from trisplat.scene.model import TriangleScene
 from trisplat.scene.sh import sh_degree_from_bases
 
@@ -81,7 +82,8 @@ def save_model_ply(path: str | Path, scene: TriangleScene, normalization: np.nda
         PlyElement.describe(vert, "vertex"),
         PlyElement.describe(face, "face", len_types={"vertex_indices": "u1"}),
     ]
-    PlyData(elements, text=False, byte_order="<", comments=comments).write(str(path))
+    with atomic_target(path) as tmp:  # a run killed mid-write leaves the old file (or none), never half a model
+        PlyData(elements, text=False, byte_order="<", comments=comments).write(str(tmp))
     return path
 
 

@@ -59,25 +59,36 @@ def restore_trainable(ckpt: dict) -> ops.TrainableScene:
 
 
 def load_checkpoint(path: Path) -> dict:
+    """A checkpoint written by `checkpoint_state` + `atomic_torch_save`. Loaded with `weights_only=True`: a
+    checkpoint holds only tensors, numbers, strings, lists and dicts, so a file that would run code when unpickled
+    (or any other object) is refused instead of executed."""
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no checkpoint to resume from")
     try:
-        return torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as exc:  # noqa: BLE001 - any unpickling failure means a corrupt file
-        raise ValueError(f"{path}: unreadable checkpoint ({exc})") from exc
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - any unpickling failure means a corrupt or foreign file
+        raise ValueError(f"{path}: unreadable checkpoint, or one holding more than plain tensors and numbers "
+                         f"({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from exc
 
 
 def load_scene_from_run(run) -> tuple[TriangleScene, np.ndarray]:
     """A run's model in the normalised frame and its normalisation [4,4]: model.ply when training finished,
-    otherwise the last checkpoint."""
+    otherwise the last checkpoint (a model.ply of an unfinished run may be from an interrupted finish; an unreadable
+    model.ply falls back to the checkpoint with a warning)."""
+    import warnings
+
     from trisplat import run as run_layout
+    from trisplat.io import load_model_ply
 
-    model = run.path / run_layout.MODEL
-    if model.exists():
-        from trisplat.io import load_model_ply
-
-        return load_model_ply(model)
-    ckpt = load_checkpoint(run.path / run_layout.CHECKPOINT)
+    model, ckpt_path = run.path / run_layout.MODEL, run.path / run_layout.CHECKPOINT
+    if model.exists() and (run.state.get("finished") or not ckpt_path.exists()):
+        try:
+            return load_model_ply(model)
+        except Exception as exc:  # noqa: BLE001 - any unreadable model file: the checkpoint is the fallback
+            if not ckpt_path.exists():
+                raise
+            warnings.warn(f"{model}: unreadable ({exc}); using the checkpoint {ckpt_path}", stacklevel=2)
+    ckpt = load_checkpoint(ckpt_path)
     ts = restore_trainable(ckpt)
     return ts.to_scene(), np.asarray(ckpt["extra"]["normalization"], dtype=np.float64)

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from trisplat import run as layout
+from trisplat.io.atomic import atomic_write_text
 from trisplat.scene.sh import sh_dc_to_rgb
 
 MESH_FORMATS = ("ply", "obj", "glb")
@@ -75,5 +76,5 @@ def write_outputs(trainer, pruned) -> dict:
         "final_prune": None if pruned is None else {"faces_removed": pruned.faces_removed,
                                                     "vertices_removed": pruned.vertices_removed},
     })
-    (run_dir / layout.METRICS).write_text(json.dumps(metrics, indent=2))
+    atomic_write_text(run_dir / layout.METRICS, json.dumps(metrics, indent=2))
     return metrics

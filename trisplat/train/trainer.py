@@ -14,6 +14,7 @@ from tqdm import tqdm
 
 from trisplat import run as layout
 from trisplat.data.types import SceneData
+from trisplat.io.atomic import atomic_write_text
 from trisplat.render import rasterize
 from trisplat.scene.model import TriangleScene
 from trisplat.scene.sh import num_sh_bases
@@ -28,6 +29,7 @@ from trisplat.train.config import TrainConfig
 MAX_ROLLBACKS = 3
 MINUTES_WARMUP_STEPS = 10  # steps timed before a --minutes run sets its step count
 MINUTES_REPLAN_EVERY = 25  # steps between re-plans of a --minutes run (from the recent step rate)
+ROLLBACK_FORGIVEN_AFTER_EPOCHS = 1  # epochs past a failed step after which its rollbacks no longer count
 
 
 class TrainingDiverged(RuntimeError):
@@ -71,6 +73,7 @@ class Trainer:
         self.generator = torch.Generator().manual_seed(cfg.seed)
         self.lr_scale = 1.0
         self.rollbacks = 0
+        self._failed_step = 0  # the step of the last NaN/Inf rollback
         self.wall_s = 0.0
         self.connected = False
         self._last_prune = self._last_densify = -(10**9)
@@ -79,6 +82,7 @@ class Trainer:
         if resume:
             ckpt = load_checkpoint(self.run_dir / layout.CHECKPOINT)
             self._restore(ckpt)
+            self._truncate_history()  # steps after the checkpoint are replayed: their records would be doubled
         else:
             if initial is None:
                 from trisplat.scene.init import initial_scene
@@ -98,13 +102,17 @@ class Trainer:
                 self._log({"init": self.init_report.summary()})  # no "step": readers of the curves skip it
                 if show_progress:
                     print(f"initialisation: {self.init_report.summary()}", file=sys.stderr, flush=True)
-        self._last_good = checkpoint_state(self.ts, self.step, self.clock.total, self.generator, self._extra())
+        if resume:
+            self._last_good = checkpoint_state(self.ts, self.step, self.clock.total, self.generator, self._extra())
+        else:
+            self.save_checkpoint()  # step 0: a run killed before its first periodic checkpoint can still --resume
 
     # ----------------------------------------------------------------------------------------------- bookkeeping
     def _extra(self) -> dict:
         return {"clock": [self.clock.total, self.clock.anchor_step, self.clock.anchor_p], "wall_s": self.wall_s,
                 "last_prune": self._last_prune, "last_densify": self._last_densify,
-                "lr_scale": self.lr_scale, "rollbacks": self.rollbacks, "connected": self.connected,
+                "lr_scale": self.lr_scale, "rollbacks": self.rollbacks, "failed_step": self._failed_step,
+                "connected": self.connected,
                 "normalization": np.asarray(self.data.normalization).tolist()}
 
     def _restore(self, ckpt: dict) -> None:
@@ -116,13 +124,14 @@ class Trainer:
         self.wall_s = float(ckpt["extra"]["wall_s"])
         self.lr_scale = float(ckpt["extra"]["lr_scale"])
         self.rollbacks = int(ckpt["extra"]["rollbacks"])
+        self._failed_step = int(ckpt["extra"].get("failed_step", 0))
         self.connected = bool(ckpt["extra"].get("connected", False))
         self._last_prune = int(ckpt["extra"].get("last_prune", -(10**9)))
         self._last_densify = int(ckpt["extra"].get("last_densify", -(10**9)))
 
     def _write_config(self, data_options: dict, data_path: str | None) -> None:
         cfg = {**self.cfg.to_dict(), "data": str(data_path or self.data.root or ""), "data_options": data_options}
-        (self.run_dir / layout.CONFIG).write_text(json.dumps(cfg, indent=2))
+        atomic_write_text(self.run_dir / layout.CONFIG, json.dumps(cfg, indent=2))
         self._write_state(finished=False)
 
     def _write_state(self, finished: bool) -> None:
@@ -136,6 +145,15 @@ class Trainer:
         self._last_good = checkpoint_state(self.ts, self.step, self.clock.total, self.generator, self._extra())
         atomic_torch_save(self._last_good, self.run_dir / layout.CHECKPOINT)
         self._write_state(finished=False)
+
+    def _truncate_history(self) -> None:
+        """Keep the history up to the restored step (and records without a step, like the initialisation's)."""
+        path = self.run_dir / layout.HISTORY
+        if not path.exists():
+            return
+        kept = [line for line in path.read_text().splitlines()
+                if line.strip() and json.loads(line).get("step", -1) <= self.step]
+        atomic_write_text(path, "".join(line + "\n" for line in kept))
 
     def _log(self, record: dict) -> None:
         with open(self.run_dir / layout.HISTORY, "a") as f:
@@ -238,21 +256,35 @@ class Trainer:
 
         # layered soups make the restricted Delaunay keep several faces per edge: keep the two best-shaped ones
         connected, _report = connect_scene(self.ts.to_scene(), ConnectConfig(repair_non_manifold_edges=True))
+        if len(connected.faces) == 0:
+            raise RuntimeError(
+                f"the switch to a connected mesh at step {self.step} produced no faces (from {self.ts.num_faces} "
+                f"soup faces); the last good checkpoint is {self.run_dir / layout.CHECKPOINT}. The soup may be "
+                "too sparse or too transparent at connect_at: try a later --connect-at.")
         ops.set_faces(self.ts, connected.faces)
         ops.remove_orphan_vertices(self.ts)
         self.connected = True
 
     def _rollback(self) -> None:
+        """Back to the last good state with half the learning rates. The scale keeps halving over repeated
+        rollbacks (restoring the state must not restore its higher scale); the count of rollbacks is forgiven once
+        the run gets ROLLBACK_FORGIVEN_AFTER_EPOCHS epochs past the step that failed (see _forgive_rollbacks)."""
         self.rollbacks += 1
         if self.rollbacks > MAX_ROLLBACKS:
             raise TrainingDiverged(
                 f"NaN/Inf in the loss or parameters at step {self.step} after {MAX_ROLLBACKS} rollbacks with halved "
                 f"learning rates; the last good checkpoint is {self.run_dir / layout.CHECKPOINT}. Try a lower "
                 "--lr-position or check the input poses.")
-        rollbacks = self.rollbacks
+        rollbacks, lr_scale, failed_step = self.rollbacks, self.lr_scale, self.step
         self._restore(self._last_good)
-        self.rollbacks = rollbacks
-        self.lr_scale *= 0.5
+        self.rollbacks, self.lr_scale, self._failed_step = rollbacks, 0.5 * lr_scale, failed_step
+
+    def _forgive_rollbacks(self) -> None:
+        """A run that got well past the step that failed has recovered: later NaNs start a fresh count (the lowered
+        learning-rate scale stays)."""
+        if self.rollbacks and self.step >= self._failed_step + ROLLBACK_FORGIVEN_AFTER_EPOCHS * len(
+                self.data.train_indices):
+            self.rollbacks = 0
 
     # ------------------------------------------------------------------------------------------------ evaluation
     @torch.no_grad()
@@ -302,11 +334,13 @@ class Trainer:
         # shrinks. Frequent re-plans keep progress close to linear in wall time: with a few re-plans, a step rate
         # that changed since the last one squeezed the rest of the schedule (measured: the whole hardening,
         # p 0.5 -> 1, in the last fifth of a lego trial; docs/benchmarks.md).
-        planned = not cfg.minutes or self.step >= MINUTES_WARMUP_STEPS
+        planned = not cfg.minutes  # a resumed run re-plans too: after steps timed on this machine, in this process
         window: list[float] = []
         bar = tqdm(total=self.clock.total, initial=self.step, disable=not self.show_progress, unit="step",
                    dynamic_ncols=True, desc="train")
-        next_eval = cfg.eval_every
+        # the next evaluation point after the current progress (a resumed run already evaluated the earlier ones)
+        next_eval = (math.floor(self.clock.p(self.step) / cfg.eval_every) + 1) * cfg.eval_every if self.step and \
+            cfg.eval_every > 0 else cfg.eval_every
         while self.step < self.clock.total:
             if stop_after is not None and self.step >= stop_after:
                 break
@@ -321,6 +355,7 @@ class Trainer:
                 bar.update(self.step)
                 continue
             self.step += 1
+            self._forgive_rollbacks()
             dt = time.perf_counter() - t0
             self.wall_s += dt
             window = (window + [dt])[-50:]
