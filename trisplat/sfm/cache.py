@@ -58,6 +58,8 @@ def posed_capture(source: Path, options: PosesOptions | None = None, cache_root:
             say(f"{source} has no poses: using the capture `trisplat poses` made of it earlier, {out}")
             return out
     say(f"{source} has no poses: running `trisplat poses` first, into {out} (reused while the photos are unchanged)")
-    run_poses(source, out, replace(opts, force=True), progress=progress, log=log)
+    report = run_poses(source, out, replace(opts, force=True), progress=progress, log=log)
     stamp.write_text(json.dumps(want, indent=1))
+    say(f"poses: {len(report.registered)} of {report.n_input} images registered, {report.points} points, mean "
+        f"reprojection error {report.mean_reprojection_error_px:.2f} px (report: {out / REPORT})")
     return out
