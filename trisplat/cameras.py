@@ -46,6 +46,15 @@ class Camera:
         object.__setattr__(self, "height", int(self.height))
 
     @property
+    def stem(self) -> str:
+        """The source photo's file stem ('r_0' for 'train/r_0.png'): what users call the view, in output names
+        and mask names. Not the stem of `image_path`, which may be a cached copy with a hash in its name. The
+        image's stem when the camera has no name; '' for a synthetic camera with neither."""
+        if self.name:
+            return Path(self.name).stem
+        return Path(self.image_path).stem if self.image_path is not None else ""
+
+    @property
     def camera_to_world(self) -> np.ndarray:
         return np.linalg.inv(self.world_to_camera)
 

@@ -1,6 +1,7 @@
 """`trisplat render RUN --split test --out DIR`: one PNG per image of the split, named after the source image."""
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -33,7 +34,7 @@ def render_split(args: RenderArgs) -> list[Path]:
     from trisplat.eval.views import eval_supersample, render_view, soft_sigma
     from trisplat.run import open_run
     from trisplat.eval.report import write_png
-    from trisplat.train.outputs import image_stem
+    from trisplat.train.outputs import output_stems
 
     import dataclasses
 
@@ -48,13 +49,15 @@ def render_split(args: RenderArgs) -> list[Path]:
     sigma = soft_sigma(run) if args.mode == "soft" else None
     ss = eval_supersample(run) if args.supersample is None else args.supersample
     idx = {"train": data.train_indices, "test": data.test_indices, "all": range(len(data.cameras))}[args.split]
+    targets = {i: args.out / f"{stem}.png" for i, stem in output_stems(data.cameras, idx).items()}
+    existing = [p for p in targets.values() if p.exists()]
+    if existing and not args.force:  # checked before anything is written
+        raise FileExistsError(f"{existing[0]} exists{f' (and {len(existing) - 1} more)' if len(existing) > 1 else ''}"
+                              "; pass --force to overwrite")
     args.out.mkdir(parents=True, exist_ok=True)
     written = []
-    for i in tqdm(list(idx), desc=f"render {args.split}"):
-        cam = data.cameras[int(i)]
-        path = args.out / f"{image_stem(cam, int(i))}.png"
-        if path.exists() and not args.force:
-            raise FileExistsError(f"{path} exists; pass --force to overwrite")
+    for i, path in tqdm(list(targets.items()), desc=f"render {args.split}"):
+        cam = data.cameras[i]
         write_png(render_view(scene, cam, args.mode, data.background, sigma, {"backend": backend_for(dev)},
                               supersample=ss), path)
         written.append(path)
@@ -66,7 +69,7 @@ def main(argv: list[str]) -> int:
     try:
         paths = render_split(args)
     except FileExistsError as exc:
-        print(f"trisplat render: {exc}")
+        print(f"trisplat render: {exc}", file=sys.stderr)
         return 1
     print(f"wrote {len(paths)} images to {args.out}")
     return 0

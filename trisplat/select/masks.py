@@ -57,7 +57,7 @@ def read_mask(path: str | Path, width: int | None = None, height: int | None = N
 
 
 def _camera_stem(cam: Camera) -> str:
-    return cam.image_path.stem if cam.image_path is not None else cam.name
+    return cam.stem  # the source photo's stem, also when the loader cached a resized copy under another name
 
 
 def match_masks(mask_dir: str | Path, cameras: Sequence[Camera], candidates: Sequence[int] | None = None,

@@ -14,8 +14,23 @@ MESH_FORMATS = ("ply", "obj", "glb")
 
 
 def image_stem(camera, index: int) -> str:
-    """Output name of a render: the source image's stem, so anyone can pair it with the ground truth."""
-    return Path(camera.image_path).stem if camera.image_path else f"view_{index:04d}"
+    """Output name of a render: the source photo's stem (never the cached copy's), so anyone can pair it with the
+    ground truth."""
+    return camera.stem or f"view_{index:04d}"
+
+
+def output_stems(cameras, indices) -> dict[int, str]:
+    """index -> output file stem for renders of views `indices`: the source photo's stem; views whose photos share
+    a stem (a Blender capture's train/r_0.png and test/r_0.png) are named by their relative path instead
+    (train_r_0, test_r_0)."""
+    stems = {int(i): image_stem(cameras[int(i)], int(i)) for i in indices}
+    counts: dict[str, int] = {}
+    for s in stems.values():
+        counts[s] = counts.get(s, 0) + 1
+    for i, s in stems.items():
+        if counts[s] > 1 and cameras[i].name:
+            stems[i] = str(Path(cameras[i].name).with_suffix("")).replace("/", "_").replace("\\", "_")
+    return stems
 
 
 def write_model_files(run_dir: Path, scene, normalization: np.ndarray) -> None:
@@ -48,10 +63,10 @@ def write_outputs(trainer, pruned) -> dict:
 
     renders = run_dir / layout.RENDERS
     renders.mkdir(exist_ok=True)
-    for i in list(data.test_indices)[: cfg.num_renders]:
-        cam = data.cameras[int(i)]
-        write_png(render_view(scene, cam, "hard", cfg.background, supersample=cfg.eval_supersample),
-                  renders / f"{image_stem(cam, int(i))}.png")
+    shown = [int(i) for i in list(data.test_indices)[: cfg.num_renders]]
+    for i, stem in output_stems(data.cameras, shown).items():
+        write_png(render_view(scene, data.cameras[i], "hard", cfg.background, supersample=cfg.eval_supersample),
+                  renders / f"{stem}.png")
 
     metrics: dict = {}
     if len(data.test_indices):
