@@ -47,7 +47,7 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("\ninterrupted", file=sys.stderr)
         return 130
-    except (FileNotFoundError, ValueError) as exc:  # user errors: one precise line, no traceback
+    except (FileNotFoundError, FileExistsError, ValueError) as exc:  # user errors: one precise line, no traceback
         if os.environ.get("TRISPLAT_DEBUG"):
             raise
         print(f"trisplat {name}: error: {exc}", file=sys.stderr)

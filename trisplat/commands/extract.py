@@ -37,6 +37,8 @@ class ExtractArgs:
     view, as in Blender captures, means the training view)."""
     format: Literal["ply", "obj", "glb"] = "ply"
     """File format of object.* and remainder.*."""
+    force: bool = False
+    """Replace an earlier extraction's files in the output folder."""
 
 
 @dataclass(frozen=True)
@@ -56,6 +58,7 @@ class ExtractResult:
 def extract_run(args: ExtractArgs) -> ExtractResult:
     """Run the extraction for `args` and write the two meshes and extract.json; returns the summary."""
     from trisplat.io import export_mesh
+    from trisplat.io.atomic import atomic_write_text, refuse_to_overwrite
     from trisplat.run import open_run
     from trisplat.select import extract_faces, match_masks, split_mesh
     from trisplat.select.extract import SOFT_SIGMA
@@ -63,6 +66,10 @@ def extract_run(args: ExtractArgs) -> ExtractResult:
     if not 0.0 < args.ratio <= 1.0:
         raise ValueError(f"--ratio must be in (0, 1], got {args.ratio}")
     run = open_run(args.run)
+    out = args.out if args.out is not None else args.run / "extract"
+    obj_path, rest_path = out / f"object.{args.format}", out / f"remainder.{args.format}"
+    mtl = [out / "object.mtl", out / "remainder.mtl"] if args.format == "obj" else []
+    refuse_to_overwrite([obj_path, rest_path, out / "extract.json", *mtl], args.force, "choose another --out")
     scene, normalization = run.load_model()
     data = run.load_scene_data()
     candidates = data.train_indices if args.train_views_only else None
@@ -82,10 +89,8 @@ def extract_run(args: ExtractArgs) -> ExtractResult:
                          "check that the masks show the object in white and belong to these views")
     colors = scene.base_colors().detach().cpu().numpy().clip(0.0, 1.0)
     obj, rest = split_mesh(positions, faces, colors, selected)
-    out = args.out if args.out is not None else args.run / "extract"
     out.mkdir(parents=True, exist_ok=True)
     to_capture = np.linalg.inv(np.asarray(normalization, dtype=np.float64))
-    obj_path, rest_path = out / f"object.{args.format}", out / f"remainder.{args.format}"
     export_mesh(obj_path, obj.positions, obj.faces, obj.colors, transform=to_capture)
     if len(rest.faces):
         export_mesh(rest_path, rest.positions, rest.faces, rest.colors, transform=to_capture)
@@ -93,7 +98,7 @@ def extract_run(args: ExtractArgs) -> ExtractResult:
                            remainder_faces=len(rest.faces), faces_seen=int(votes.seen.sum()),
                            unmatched_mask_pixels=votes.unmatched_mask_pixels, object_path=str(obj_path),
                            remainder_path=str(rest_path) if len(rest.faces) else "")
-    (out / "extract.json").write_text(json.dumps({"args": {k: str(v) for k, v in asdict(args).items()},
+    atomic_write_text(out / "extract.json", json.dumps({"args": {k: str(v) for k, v in asdict(args).items()},
                                                   **asdict(result)}, indent=2))
     return result
 

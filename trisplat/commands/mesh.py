@@ -30,16 +30,27 @@ class MeshConfig:
     """at edges with more than two faces keep the two best-shaped faces (--no-repair-non-manifold keeps all)"""
     up: Literal["y", "z"] | None = None
     """rotate the export so the capture's up becomes +Y ('y') or +Z ('z'); default keeps the capture's axes"""
+    force: bool = False
+    """replace the output mesh (and its statistics file) if they exist"""
 
 
 def main(argv: list[str]) -> int:
     cfg = tyro.cli(MeshConfig, args=argv, prog="trisplat mesh", description=__doc__)
-    from trisplat.io import export_mesh
+    from trisplat.io import FORMATS, export_mesh
+    from trisplat.io.atomic import atomic_write_text, refuse_to_overwrite
     from trisplat.mesh.connect import ConnectConfig, connect_faces
     from trisplat.mesh.stats import mesh_statistics
     from trisplat.run import open_run
 
     run = open_run(cfg.run)
+    out = cfg.out if cfg.out is not None else run.path / MESH_FILE
+    if Path(out).suffix.lower() not in FORMATS:
+        raise ValueError(f"{out}: unknown mesh format {Path(out).suffix!r}; use one of {', '.join(FORMATS)}")
+    if not Path(out).parent.is_dir():
+        raise FileNotFoundError(f"{out}: folder {Path(out).parent} does not exist")
+    targets = [out, Path(out).parent / STATS_FILE] + ([Path(out).with_suffix(".mtl")]
+                                                      if Path(out).suffix.lower() == ".obj" else [])
+    refuse_to_overwrite(targets, cfg.force)  # before the (long) triangulation
     scene, normalization = run.load_model()
     positions = scene.positions.detach().cpu().numpy().astype(np.float64)
     cleaned, rep = connect_faces(positions, scene.faces.detach().cpu().numpy(), ConnectConfig(
@@ -53,7 +64,6 @@ def main(argv: list[str]) -> int:
                          f"({rep.num_vertices} vertices, {scene.num_faces} soup faces; {'; '.join(rep.notes)})")
     colors = scene.base_colors().detach().cpu().numpy()[cleaned.vertex_source]
     to_capture = np.linalg.inv(np.asarray(normalization, dtype=np.float64))
-    out = cfg.out if cfg.out is not None else run.path / MESH_FILE
     export_mesh(out, cleaned.vertices, cleaned.faces, np.clip(colors, 0.0, 1.0), up=cfg.up, transform=to_capture)
     capture_positions = cleaned.vertices @ to_capture[:3, :3].T + to_capture[:3, 3]
     stats = mesh_statistics(capture_positions, cleaned.faces).to_dict()
@@ -66,6 +76,6 @@ def main(argv: list[str]) -> int:
                                                      "num_flipped")},
         "statistics": stats,
     }
-    (Path(out).parent / STATS_FILE).write_text(json.dumps(report, indent=2))
+    atomic_write_text(Path(out).parent / STATS_FILE, json.dumps(report, indent=2))
     print(json.dumps(report, indent=2))
     return 0

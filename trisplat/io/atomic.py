@@ -44,3 +44,14 @@ def atomic_write_bytes(path: str | Path, data: bytes) -> Path:
 def atomic_write_text(path: str | Path, text: str) -> Path:
     """Write `text` (UTF-8) to `path` atomically; returns `path`."""
     return atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def refuse_to_overwrite(paths, force: bool, hint: str = "") -> None:
+    """The one overwrite rule of every command: raise FileExistsError naming the files of `paths` that exist,
+    unless `force`. Call it before any work, so a refusal costs nothing and changes nothing."""
+    existing = [Path(p) for p in paths if Path(p).exists()]
+    if existing and not force:
+        names = ", ".join(str(p) for p in existing[:5]) + (f" (and {len(existing) - 5} more)" if len(existing) > 5
+                                                          else "")
+        raise FileExistsError(f"would overwrite {names}; pass --force to replace {'it' if len(existing) == 1 else 'them'}"
+                              + (f", or {hint}" if hint else ""))

@@ -1,0 +1,89 @@
+"""One rule for every command: never replace a user's file without --force, and check the inputs before touching
+any output (a refusal, or a bad input, changes nothing on disk)."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from trisplat.cli import main as cli_main
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    """A small capture and a 'finished' run of it whose model is the true mesh."""
+    from trisplat.data import load_dataset
+    from trisplat.io import save_model_ply
+    from trisplat.scene.model import TriangleScene
+    from trisplat.synth import demo_mesh, write_blender_scene
+
+    root = tmp_path_factory.mktemp("overwrite")
+    mesh = demo_mesh()
+    capture = write_blender_scene(root / "capture", mesh, n_train=3, n_test=1, width=24, height=24,
+                                  samples_per_pixel=1, n_points=0)
+    N = load_dataset(capture).normalization
+    run = root / "run"
+    run.mkdir()
+    (run / "config.json").write_text(json.dumps({"data": str(capture), "data_options": {}, "eval_supersample": 1}))
+    (run / "state.json").write_text(json.dumps({"finished": True, "step": 1, "total_steps": 1}))
+    pos = mesh.vertices @ N[:3, :3].T + N[:3, 3]
+    save_model_ply(run / "model.ply", TriangleScene.from_rgb(pos, mesh.faces, np.full((len(pos), 3), 0.5),
+                                                             opacity=0.999), N)
+    return run
+
+
+def _snapshot(folder):
+    return {p.relative_to(folder): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def test_eval_keeps_the_trainings_evaluation_without_force(run, capsys):
+    ev = run / "eval_test"
+    ev.mkdir(exist_ok=True)
+    (ev / "metrics.json").write_text('{"psnr": 25.98, "written_by": "training"}')
+    before = _snapshot(ev)
+    assert cli_main(["eval", str(run), "--max-views", "1"]) == 1
+    err = capsys.readouterr().err
+    assert "would overwrite" in err and "eval_test/metrics.json" in err and "--force" in err and "--out" in err
+    assert _snapshot(ev) == before
+    assert cli_main(["eval", str(run), "--max-views", "1", "--force"]) == 0
+    assert json.loads((ev / "metrics.json").read_text())["split"] == "test"
+
+
+def test_mesh_refuses_an_existing_output_before_triangulating(run, tmp_path, capsys, monkeypatch):
+    import trisplat.mesh.connect as connect
+
+    target = tmp_path / "existing.ply"
+    target.write_bytes(b"the user's mesh")
+    monkeypatch.setattr(connect, "connect_faces", lambda *a, **k: pytest.fail("triangulated before the check"))
+    assert cli_main(["mesh", str(run), "--out", str(target)]) == 1
+    assert "would overwrite" in capsys.readouterr().err and target.read_bytes() == b"the user's mesh"
+    assert cli_main(["mesh", str(run), "--out", str(tmp_path / "x.stl")]) == 1
+    assert "unknown mesh format '.stl'" in capsys.readouterr().err
+    monkeypatch.undo()
+    assert cli_main(["mesh", str(run), "--out", str(target), "--force"]) == 0
+    assert target.read_bytes() != b"the user's mesh"
+
+
+def test_extract_refuses_to_replace_an_earlier_extraction(run, tmp_path, capsys):
+    masks = tmp_path / "masks"
+    masks.mkdir()
+    Image.fromarray(np.full((24, 24), 255, np.uint8)).save(masks / "r_0.png")
+    out = tmp_path / "cut"
+    assert cli_main(["extract", str(run), "--masks", str(masks), "--out", str(out)]) == 0
+    before = _snapshot(out)
+    assert cli_main(["extract", str(run), "--masks", str(masks), "--out", str(out), "--ratio", "0.9"]) == 1
+    assert "would overwrite" in capsys.readouterr().err and _snapshot(out) == before
+    assert cli_main(["extract", str(run), "--masks", str(masks), "--out", str(out), "--force"]) == 0
+
+
+def test_train_force_checks_the_capture_before_moving_the_old_run(run, tmp_path, capsys):
+    old = tmp_path / "old"
+    old.mkdir()
+    (old / "config.json").write_text(json.dumps({"data": "somewhere"}))
+    (old / "state.json").write_text(json.dumps({"finished": True, "step": 5, "total_steps": 5}))
+    before = _snapshot(old)
+    assert cli_main(["train", str(tmp_path / "no-such-capture"), "--out", str(old), "--force", "--quiet"]) == 1
+    assert "no-such-capture" in capsys.readouterr().err
+    assert _snapshot(old) == before and not list(tmp_path.glob("old.old-*"))  # nothing was moved aside
