@@ -4,7 +4,7 @@ maths is in warp_kernels.py.
 
 torch <-> Warp without copies: every buffer is a torch tensor on the input's device, handed to the kernels through
 wp.from_torch (a view). Kernels run on torch's current CUDA stream, so they are ordered with the surrounding torch
-work. Inputs in float64 are converted to float32 once (the kernels compute in float32, like the Numba ones).
+work. Vertex data in float64 is converted to float32 once (the kernels store float32, like the Numba ones).
 """
 from __future__ import annotations
 
@@ -116,7 +116,8 @@ def forward_warp(positions, faces, vertex_rgb, opacities, sigma, world_to_camera
     wp, wk = _modules()
     dev = positions.device
     pos, rgbv, op, bg = (_f32(t, dev) for t in (positions, vertex_rgb, opacities, background))
-    w2c, Km = _f32(world_to_camera, dev), _f32(K, dev)
+    w2c = world_to_camera.detach().to(device=dev, dtype=torch.float64).contiguous()  # the setup is float64
+    Km = K.detach().to(device=dev, dtype=torch.float64).contiguous()
     fc = faces.detach().to(device=dev, dtype=torch.int32).contiguous()
     F, W, H, tile = fc.shape[0], int(width), int(height), int(opts.tile_size)
     z = lambda *s, dt=torch.float32: torch.zeros(*s, dtype=dt, device=dev)  # noqa: E731

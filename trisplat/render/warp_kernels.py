@@ -15,7 +15,8 @@ The GPU design of gsplat / 3DGS, with the maths of the Numba kernels (kernels.py
                      projection), atomically added to the shared vertices
   hard_setup / hard_pixels / hard_resolve   the opaque z-buffer renderer on the same binning (nearest face per
                      pixel centre; a tile's faces sorted by nearest-vertex depth, so a pixel stops early)
-All arithmetic is float32 (the Numba setup uses float64; the parity tests state the tolerances).
+As in the Numba kernels, the per-face setup and its backward run in float64 (few operations per face) and the
+per-pixel work in float32; the hard mode is float32 throughout.
 """
 from __future__ import annotations
 
@@ -36,6 +37,7 @@ _T_NRM = wp.constant(T_NRM)
 _T_OP = wp.constant(T_OP)
 _N_THETA = wp.constant(N_THETA)
 mat32 = wp.types.matrix(shape=(3, 2), dtype=wp.float32)  # three screen points, one per row
+mat32d = wp.types.matrix(shape=(3, 2), dtype=wp.float64)
 
 
 @wp.func
@@ -113,46 +115,68 @@ def pixel_box(u: wp.vec3, v: wp.vec3, width: int, height: int):
     return wp.vec4i(ix0, iy0, ix1, iy1)
 
 
+@wp.func
+def to_cam64(w2c: wp.array2d(dtype=wp.float64), pos: wp.array2d(dtype=wp.float32), v: int):
+    """Camera-frame position of vertex v in float64 (x_cam = R x + t)."""
+    x = wp.float64(pos[v, 0])
+    y = wp.float64(pos[v, 1])
+    z = wp.float64(pos[v, 2])
+    return wp.vec3d(
+        w2c[0, 0] * x + w2c[0, 1] * y + w2c[0, 2] * z + w2c[0, 3],
+        w2c[1, 0] * x + w2c[1, 1] * y + w2c[1, 2] * z + w2c[1, 3],
+        w2c[2, 0] * x + w2c[2, 1] * y + w2c[2, 2] * z + w2c[2, 3],
+    )
+
+
+@wp.func
+def project64(K: wp.array2d(dtype=wp.float64), c: wp.vec3d):
+    return wp.vec2d((K[0, 0] * c[0] + K[0, 1] * c[1]) / c[2] + K[0, 2], (K[1, 0] * c[0] + K[1, 1] * c[1]) / c[2] + K[1, 2])
+
+
 @wp.kernel
-def setup_faces(pos: wp.array2d(dtype=wp.float32), faces: wp.array2d(dtype=wp.int32), w2c: wp.array2d(dtype=wp.float32),
-                K: wp.array2d(dtype=wp.float32), rgb: wp.array2d(dtype=wp.float32), opac: wp.array(dtype=wp.float32),
-                opacity_min: int, near: float, far: float, min_area: float, grazing_cos: float, width: int,
-                height: int, tile: int, theta: wp.array2d(dtype=wp.float32), rect: wp.array2d(dtype=wp.int32),
+def setup_faces(pos: wp.array2d(dtype=wp.float32), faces: wp.array2d(dtype=wp.int32), w2c: wp.array2d(dtype=wp.float64),
+                K: wp.array2d(dtype=wp.float64), rgb: wp.array2d(dtype=wp.float32), opac: wp.array(dtype=wp.float32),
+                opacity_min: int, near: wp.float64, far: wp.float64, min_area: wp.float64, grazing_cos: wp.float64,
+                width: int, height: int, tile: int, theta: wp.array2d(dtype=wp.float32), rect: wp.array2d(dtype=wp.int32),
                 depth: wp.array(dtype=wp.float32), argmin: wp.array(dtype=wp.int32), ntiles: wp.array(dtype=wp.int32)):
     """Per face: THETA, pixel-centre box rect [F,4] (ix0, iy0, ix1, iy1), centroid view depth (the sort key),
-    opacity arg-min vertex (-1 in mean mode) and the number of tiles overlapped exactly (0 = culled/off-screen)."""
+    opacity arg-min vertex (-1 in mean mode) and the number of tiles overlapped exactly (0 = culled/off-screen).
+    Computed in float64 and stored in float32, as the Numba setup (edge offsets near the far side of a large image
+    would otherwise carry ~1e-5 px of rounding, which moves pixels across the alpha_min threshold at sigma < 1)."""
     f = wp.tid()
     ntiles[f] = 0
     depth[f] = 0.0
-    c0 = to_cam(w2c, pos, faces[f, 0])
-    c1 = to_cam(w2c, pos, faces[f, 1])
-    c2 = to_cam(w2c, pos, faces[f, 2])
+    zero = wp.float64(0.0)
+    one = wp.float64(1.0)
+    c0 = to_cam64(w2c, pos, faces[f, 0])
+    c1 = to_cam64(w2c, pos, faces[f, 1])
+    c2 = to_cam64(w2c, pos, faces[f, 2])
     zmin = wp.min(c0[2], wp.min(c1[2], c2[2]))
     if zmin < near or zmin > far:
         return
-    p0 = project(K, c0)
-    p1 = project(K, c1)
-    p2 = project(K, c2)
+    p0 = project64(K, c0)
+    p1 = project64(K, c1)
+    p2 = project64(K, c2)
     cr = wp.cross(c1 - c0, c2 - c0)
     clen = wp.length(cr)
-    if clen == 0.0:
+    if clen == zero:
         return
     nrm = cr / clen
-    if wp.dot(nrm, c0) > 0.0:
+    if wp.dot(nrm, c0) > zero:
         nrm = -nrm
-    cen = (c0 + c1 + c2) / 3.0
+    cen = (c0 + c1 + c2) / wp.float64(3.0)
     if wp.abs(wp.dot(nrm, cen)) < grazing_cos * wp.length(cen):
         return
     area2 = (p1[0] - p0[0]) * (p2[1] - p0[1]) - (p1[1] - p0[1]) * (p2[0] - p0[0])
     aa = wp.abs(area2)
-    if aa * 0.5 < min_area or aa == 0.0:
+    if aa * wp.float64(0.5) < min_area or aa == zero:
         return
-    sg = 1.0
-    if area2 < 0.0:
-        sg = -1.0
-    uv = mat32(p0[0], p0[1], p1[0], p1[1], p2[0], p2[1])
-    lens = wp.vec3(0.0)
-    per = float(0.0)
+    sg = one
+    if area2 < zero:
+        sg = -one
+    uv = mat32d(p0[0], p0[1], p1[0], p1[1], p2[0], p2[1])
+    lens = wp.vec3d(zero)
+    per = zero
     for k in range(3):
         k1 = (k + 1) % 3
         ex = uv[k1, 0] - uv[k, 0]
@@ -162,20 +186,19 @@ def setup_faces(pos: wp.array2d(dtype=wp.float32), faces: wp.array2d(dtype=wp.in
         per += ln
         nx = sg * ey / ln
         ny = -sg * ex / ln
-        theta[f, 3 * k] = nx
-        theta[f, 3 * k + 1] = ny
-        theta[f, 3 * k + 2] = -(nx * uv[k, 0] + ny * uv[k, 1])
-    theta[f, _T_INVR] = per / aa
-    zs = wp.vec3(c0[2], c1[2], c2[2])
+        theta[f, 3 * k] = wp.float32(nx)
+        theta[f, 3 * k + 1] = wp.float32(ny)
+        theta[f, 3 * k + 2] = wp.float32(-(nx * uv[k, 0] + ny * uv[k, 1]))
+    theta[f, _T_INVR] = wp.float32(per / aa)
+    zs = wp.vec3d(c0[2], c1[2], c2[2])
     for k in range(3):
-        theta[f, _T_S + k] = lens[(k + 1) % 3] / aa
+        theta[f, _T_S + k] = wp.float32(lens[(k + 1) % 3] / aa)
         v = faces[f, k]
         for c in range(3):
             theta[f, _T_COL + 3 * k + c] = rgb[v, c]
-        theta[f, _T_ZI + k] = 1.0 / zs[k]
-    theta[f, _T_NRM] = nrm[0]
-    theta[f, _T_NRM + 1] = nrm[1]
-    theta[f, _T_NRM + 2] = nrm[2]
+        theta[f, _T_ZI + k] = wp.float32(one / zs[k])
+    for c in range(3):
+        theta[f, _T_NRM + c] = wp.float32(nrm[c])
     o0 = opac[faces[f, 0]]
     o1 = opac[faces[f, 1]]
     o2 = opac[faces[f, 2]]
@@ -193,13 +216,19 @@ def setup_faces(pos: wp.array2d(dtype=wp.float32), faces: wp.array2d(dtype=wp.in
     else:
         theta[f, _T_OP] = (o0 + o1 + o2) / 3.0
         argmin[f] = -1
-    box = pixel_box(wp.vec3(p0[0], p1[0], p2[0]), wp.vec3(p0[1], p1[1], p2[1]), width, height)
-    if box[0] > box[2] or box[1] > box[3]:
+    half = wp.float64(0.5)
+    ix0 = wp.max(0, int(wp.ceil(wp.min(p0[0], wp.min(p1[0], p2[0])) - half)))
+    ix1 = wp.min(width - 1, int(wp.floor(wp.max(p0[0], wp.max(p1[0], p2[0])) - half)))
+    iy0 = wp.max(0, int(wp.ceil(wp.min(p0[1], wp.min(p1[1], p2[1])) - half)))
+    iy1 = wp.min(height - 1, int(wp.floor(wp.max(p0[1], wp.max(p1[1], p2[1])) - half)))
+    if ix0 > ix1 or iy0 > iy1:
         return
-    for k in range(4):
-        rect[f, k] = box[k]
+    rect[f, 0] = ix0
+    rect[f, 1] = iy0
+    rect[f, 2] = ix1
+    rect[f, 3] = iy1
     ntiles[f] = count_tiles(theta, rect, f, tile, 0)
-    depth[f] = cen[2]
+    depth[f] = wp.float32(cen[2])
 
 
 @wp.kernel
@@ -483,56 +512,59 @@ def raster_backward(theta: wp.array2d(dtype=wp.float32), rect: wp.array2d(dtype=
 
 @wp.kernel
 def setup_backward(pos: wp.array2d(dtype=wp.float32), faces: wp.array2d(dtype=wp.int32),
-                   w2c: wp.array2d(dtype=wp.float32), K: wp.array2d(dtype=wp.float32), argmin: wp.array(dtype=wp.int32),
-                   ntiles: wp.array(dtype=wp.int32), g: wp.array2d(dtype=wp.float32), g_pos: wp.array2d(dtype=wp.float32),
+                   w2c: wp.array2d(dtype=wp.float64), K: wp.array2d(dtype=wp.float64), argmin: wp.array(dtype=wp.int32),
+                   ntiles: wp.array(dtype=wp.int32), gt: wp.array2d(dtype=wp.float32), g_pos: wp.array2d(dtype=wp.float32),
                    g_rgb: wp.array2d(dtype=wp.float32), g_op: wp.array(dtype=wp.float32)):
-    """One face: its THETA gradient -> world positions, vertex colours and vertex opacities (atomic adds onto the
-    shared vertices). The forward quantities are recomputed."""
+    """One face: its THETA gradient gt -> world positions, vertex colours and vertex opacities (atomic adds onto the
+    shared vertices). The forward quantities are recomputed in float64, as in the Numba kernel."""
     f = wp.tid()
     if ntiles[f] == 0:
         return
-    c0 = to_cam(w2c, pos, faces[f, 0])
-    c1 = to_cam(w2c, pos, faces[f, 1])
-    c2 = to_cam(w2c, pos, faces[f, 2])
-    xc = wp.mat33(c0[0], c0[1], c0[2], c1[0], c1[1], c1[2], c2[0], c2[1], c2[2])
-    p0 = project(K, c0)
-    p1 = project(K, c1)
-    p2 = project(K, c2)
-    uv = mat32(p0[0], p0[1], p1[0], p1[1], p2[0], p2[1])
+    zero = wp.float64(0.0)
+    one = wp.float64(1.0)
+    c0 = to_cam64(w2c, pos, faces[f, 0])
+    c1 = to_cam64(w2c, pos, faces[f, 1])
+    c2 = to_cam64(w2c, pos, faces[f, 2])
+    xc = wp.mat33d(c0[0], c0[1], c0[2], c1[0], c1[1], c1[2], c2[0], c2[1], c2[2])
+    p0 = project64(K, c0)
+    p1 = project64(K, c1)
+    p2 = project64(K, c2)
+    uv = mat32d(p0[0], p0[1], p1[0], p1[1], p2[0], p2[1])
     area2 = (p1[0] - p0[0]) * (p2[1] - p0[1]) - (p1[1] - p0[1]) * (p2[0] - p0[0])
-    sg = 1.0
-    if area2 < 0.0:
-        sg = -1.0
+    sg = one
+    if area2 < zero:
+        sg = -one
     aa = wp.abs(area2)
-    ex = wp.vec3(0.0)
-    ey = wp.vec3(0.0)
-    lens = wp.vec3(0.0)
-    per = float(0.0)
+    ex = wp.vec3d(zero)
+    ey = wp.vec3d(zero)
+    lens = wp.vec3d(zero)
+    per = zero
     for k in range(3):
         k1 = (k + 1) % 3
         ex[k] = uv[k1, 0] - uv[k, 0]
         ey[k] = uv[k1, 1] - uv[k, 1]
         lens[k] = wp.sqrt(ex[k] * ex[k] + ey[k] * ey[k])
         per += lens[k]
-    g_len = wp.vec3(0.0)
-    g_aa = float(0.0)
-    g_invr = g[f, _T_INVR]
+    g_len = wp.vec3d(zero)
+    g_aa = zero
+    g_invr = wp.float64(gt[f, _T_INVR])
     for k in range(3):  # inv_r = per / aa
         g_len[k] += g_invr / aa
     g_aa -= g_invr * per / (aa * aa)
     for k in range(3):  # s_k = len_{k+1} / aa
         k1 = (k + 1) % 3
-        g_len[k1] += g[f, _T_S + k] / aa
-        g_aa -= g[f, _T_S + k] * lens[k1] / (aa * aa)
-    g_uv = mat32(0.0)
+        gs = wp.float64(gt[f, _T_S + k])
+        g_len[k1] += gs / aa
+        g_aa -= gs * lens[k1] / (aa * aa)
+    g_uv = mat32d(zero)
     for k in range(3):  # edge lines: n_k = sg * (ey, -ex) / len, d_k = -n_k . uv_k
         k1 = (k + 1) % 3
         ln = lens[k]
         nx = sg * ey[k] / ln
         ny = -sg * ex[k] / ln
-        gd = g[f, 3 * k + 2]
-        gnx = g[f, 3 * k] - gd * uv[k, 0]
-        gny = g[f, 3 * k + 1] - gd * uv[k, 1]
+        gd = wp.float64(gt[f, 3 * k + 2])
+        gnx = wp.float64(gt[f, 3 * k]) - gd * uv[k, 0]
+        gny = wp.float64(gt[f, 3 * k + 1]) - gd * uv[k, 1]
         g_uv[k, 0] -= gd * nx
         g_uv[k, 1] -= gd * ny
         qx = sg * nx
@@ -559,7 +591,7 @@ def setup_backward(pos: wp.array2d(dtype=wp.float32), faces: wp.array2d(dtype=wp
     g_uv[2, 1] += g_a2 * ax_
     g_uv[0, 0] -= g_a2 * (by_ - ay_)
     g_uv[0, 1] -= g_a2 * (ax_ - bx_)
-    g_xc = wp.mat33(0.0)
+    g_xc = wp.mat33d(zero)
     for k in range(3):  # projection and 1/z
         z = xc[k, 2]
         gu = g_uv[k, 0]
@@ -567,17 +599,17 @@ def setup_backward(pos: wp.array2d(dtype=wp.float32), faces: wp.array2d(dtype=wp
         g_xc[k, 0] += (gu * K[0, 0] + gv * K[1, 0]) / z
         g_xc[k, 1] += (gu * K[0, 1] + gv * K[1, 1]) / z
         g_xc[k, 2] -= (gu * (uv[k, 0] - K[0, 2]) + gv * (uv[k, 1] - K[1, 2])) / z
-        g_xc[k, 2] -= g[f, _T_ZI + k] / (z * z)
+        g_xc[k, 2] -= wp.float64(gt[f, _T_ZI + k]) / (z * z)
     # Camera-facing unit normal: nrm = s * c / |c|, c = A x B, A = x1 - x0, B = x2 - x0.
     A = c1 - c0
     B = c2 - c0
     cr = wp.cross(A, B)
     clen = wp.length(cr)
     ch = cr / clen
-    s = 1.0
-    if wp.dot(ch, c0) > 0.0:
-        s = -1.0
-    gN = s * wp.vec3(g[f, _T_NRM], g[f, _T_NRM + 1], g[f, _T_NRM + 2])
+    s = one
+    if wp.dot(ch, c0) > zero:
+        s = -one
+    gN = s * wp.vec3d(wp.float64(gt[f, _T_NRM]), wp.float64(gt[f, _T_NRM + 1]), wp.float64(gt[f, _T_NRM + 2]))
     gcv = (gN - wp.dot(gN, ch) * ch) / clen
     gA = wp.cross(B, gcv)
     gB = wp.cross(gcv, A)
@@ -589,12 +621,12 @@ def setup_backward(pos: wp.array2d(dtype=wp.float32), faces: wp.array2d(dtype=wp
     for k in range(3):  # world positions: x_c = R p + t  ->  g_p = R^T g_xc
         v = faces[f, k]
         for c in range(3):
-            wp.atomic_add(g_pos, v, c, w2c[0, c] * g_xc[k, 0] + w2c[1, c] * g_xc[k, 1] + w2c[2, c] * g_xc[k, 2])
-            wp.atomic_add(g_rgb, v, c, g[f, _T_COL + 3 * k + c])
+            wp.atomic_add(g_pos, v, c, wp.float32(w2c[0, c] * g_xc[k, 0] + w2c[1, c] * g_xc[k, 1] + w2c[2, c] * g_xc[k, 2]))
+            wp.atomic_add(g_rgb, v, c, gt[f, _T_COL + 3 * k + c])
         if am < 0:
-            wp.atomic_add(g_op, v, g[f, _T_OP] / 3.0)
+            wp.atomic_add(g_op, v, gt[f, _T_OP] / 3.0)
         elif am == k:
-            wp.atomic_add(g_op, v, g[f, _T_OP])
+            wp.atomic_add(g_op, v, gt[f, _T_OP])
 
 
 # ---- hard (opaque z-buffer) mode ----------------------------------------------------------------------------------
