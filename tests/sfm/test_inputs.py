@@ -101,3 +101,10 @@ def test_non_empty_out_is_refused_without_force(tmp_path, capsys):
     assert cli_main(["poses", str(tmp_path), "--out", str(out), "--quiet", "--force"]) == 1
     assert "not from `trisplat poses` (mine.txt)" in capsys.readouterr().err
     assert (out / "mine.txt").read_text() == "keep me"
+
+
+def test_folder_without_images_says_subfolders_are_not_searched(tmp_path):
+    (tmp_path / "photos" / "day1").mkdir(parents=True)
+    _noise(tmp_path / "photos" / "day1" / "a.png")
+    with pytest.raises(ValueError, match=r"no image files .* \(subfolders are not searched\)"):
+        run_poses(tmp_path / "photos", tmp_path / "out", progress=False, log=lambda m: None)

@@ -23,7 +23,15 @@ from pathlib import Path
 
 import numpy as np
 
-from trisplat.sfm.inputs import MIN_IMAGES, check_images, find_images, is_video, name_list
+from trisplat.sfm.inputs import (
+    IMAGE_SUFFIXES,
+    MIN_IMAGES,
+    VIDEO_SUFFIXES,
+    check_images,
+    find_images,
+    is_video,
+    name_list,
+)
 from trisplat.sfm.pairs import exhaustive_pairs, loop_pairs, retrieval_similarity, sequential_pairs
 
 MATCHERS = ("auto", "exhaustive", "sequential")
@@ -327,14 +335,14 @@ def _copy_distorted(model_dir: Path, image_dir: Path, names: list[str], out: Pat
 
 
 def _failure(n_ok: int, names: list[str], registered: set[str], features: dict[str, int], pairs: dict[str, int],
-             needed: int, source: Path) -> ValueError:
+             needed: int, source: Path, work: Path) -> ValueError:
     left = [n for n in names if n not in registered]
     detail = [f"{n} ({features.get(n, 0)} features, {pairs.get(n, 0)} verified pairs)" for n in left]
     few = [n for n in left if features.get(n, 0) < FEW_FEATURES]
     hint = (f"; {len(few)} of them have fewer than {FEW_FEATURES} features (blurred, dark or textureless?)"
             if few else "; they share too few matches with the rest (too little overlap between views?)")
     return ValueError(f"{source}: only {n_ok} of {len(names)} images registered (need at least {needed}); "
-                      f"not registered: {name_list(detail)}{hint}")
+                      f"not registered: {name_list(detail)}{hint}. Features and matches are kept in {work}")
 
 
 def run_poses(source: str | Path, out: str | Path, options: PosesOptions | None = None, progress: bool = True,
@@ -355,11 +363,16 @@ def run_poses(source: str | Path, out: str | Path, options: PosesOptions | None 
         raise FileNotFoundError(f"{source}: no such folder or video file")
     video = is_video(source)
     if not video and not source.is_dir():
-        raise ValueError(f"{source}: expected a folder of photos or a video file ({', '.join(('.mp4', '.mov'))}, ...)")
+        raise ValueError(f"{source}: expected a folder of photos or a video file ({', '.join(VIDEO_SUFFIXES)})")
     if not video:  # photos are checked before anything is written
         _check_out(out, source, opts.force)
+        t_check = time.perf_counter()
         files = find_images(source)
+        if not files:
+            raise ValueError(f"{source}: no image files ({', '.join(IMAGE_SUFFIXES)}) directly in this folder "
+                             f"(subfolders are not searched)")
         check = check_images(files, same_size=opts.camera_mode == "single", where=str(source))
+        t_check = time.perf_counter() - t_check
     _prepare_out(out, source, opts.force)
     work = out / WORK
     work.mkdir()
@@ -393,7 +406,7 @@ def run_poses(source: str | Path, out: str | Path, options: PosesOptions | None 
             check = check_images(files, same_size=True, where=str(source))
         else:
             image_dir = source
-            t = head(f"checked {len(files)} images")
+            t = head(f"checked {len(files)} images") - t_check
         for w in check.warnings:
             say(f"      warning: {w}")
         warnings += check.warnings
@@ -430,7 +443,7 @@ def run_poses(source: str | Path, out: str | Path, options: PosesOptions | None 
         models = _map(db, image_dir, work, len(names), opts.seed, progress)
         times["mapping"] = time.perf_counter() - t
         if not models:
-            raise _failure(0, names, set(), feats["features"], per_image, needed, source)
+            raise _failure(0, names, set(), feats["features"], per_image, needed, source, work)
         best = max(models, key=lambda r: (r.num_reg_images(), r.num_points3D()))
         registered = {best.images[i].name for i in best.reg_image_ids()}
         elsewhere = {r.images[i].name for r in models if r is not best for i in r.reg_image_ids()} - registered
@@ -438,7 +451,7 @@ def run_poses(source: str | Path, out: str | Path, options: PosesOptions | None 
             warnings.append(f"the images formed {len(models)} separate models; kept the largest "
                             f"({len(registered)} images); left out, in smaller models: {name_list(sorted(elsewhere))}")
         if len(registered) < needed:
-            raise _failure(len(registered), names, registered, feats["features"], per_image, needed, source)
+            raise _failure(len(registered), names, registered, feats["features"], per_image, needed, source, work)
         model_dir = work / "sparse" / "0"
         model_dir.mkdir(parents=True)
         best.write(str(model_dir))
