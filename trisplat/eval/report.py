@@ -86,11 +86,13 @@ class SplitMetrics:
 
 @dataclass
 class ViewImages:
-    """The pictures of one view shown in the report: ground truth and render, float [H,W,3] in [0,1]."""
+    """The pictures of one view shown in the report: ground truth and render, float [H,W,3] in [0,1]; optionally
+    `shaded`, the bare surface from the same camera (grey, headlight-lit: see eval.views.render_shaded)."""
 
     name: str
     gt: np.ndarray
     render: np.ndarray
+    shaded: np.ndarray | None = None
 
 
 def _mean(vals: Sequence[float]) -> float:
@@ -221,8 +223,8 @@ _CSS = """
 body{font-family:system-ui,sans-serif;margin:1.5em;color:#222}
 table{border-collapse:collapse;margin:.5em 0}td,th{border:1px solid #ccc;padding:2px 8px;text-align:right}
 th{background:#f3f3f3}td.name{text-align:left}tr.mean td{font-weight:bold;background:#fafafa}
-.view{display:flex;gap:6px;align-items:flex-start;margin:.6em 0 1.4em}.view figure{margin:0}
-.view img{max-width:32vw;image-rendering:pixelated;border:1px solid #ddd}figcaption{font-size:.8em;color:#555}
+div.view{display:flex;flex-wrap:wrap;gap:6px;align-items:flex-start;margin:.6em 0 1.4em}div.view figure{margin:0}
+div.view img{max-width:24vw;image-rendering:pixelated;border:1px solid #ddd}figcaption{font-size:.8em;color:#555}
 pre{background:#f7f7f7;padding:.6em;overflow:auto;max-height:30em}.note{color:#a40}
 """
 
@@ -293,8 +295,12 @@ def write_report(
 
     # --- views
     if images:
-        parts.append(f"<h2>Views</h2><p>ground truth | render | mean absolute error (black 0, yellow &ge; "
-                     f"{ERROR_MAP_MAX:g}); {len(images)} of {len(metrics.views)} views shown.</p>")  # fmt: skip
+        shaded = sum(vi.shaded is not None for vi in images)
+        parts.append(f"<h2>Views</h2><p>ground truth | render | "
+                     + ("surface (the mesh without its colours: grey, lit from the camera; " f"{shaded} views) | "
+                        if shaded else "")
+                     + f"mean absolute error (black 0, yellow &ge; {ERROR_MAP_MAX:g}); {len(images)} of "
+                     f"{len(metrics.views)} views shown.</p>")  # fmt: skip
     for k, vi in enumerate(images):
         if vi.name not in by_name:
             raise ValueError(f"report image {vi.name!r} has no metrics entry (views: {list(by_name)[:5]}...)")
@@ -306,10 +312,18 @@ def write_report(
         _save_png(gt, img_dir / files["gt"])
         _save_png(rd, img_dir / files["render"])
         _save_png(error_map(vi.gt, vi.render), img_dir / files["error"])
+        shown = [("ground truth", "gt"), ("render", "render"), ("error", "error")]
+        if vi.shaded is not None:
+            sh = _to_uint8(vi.shaded)
+            if sh.shape != rd.shape:
+                raise ValueError(f"view {vi.name!r}: shaded {sh.shape} and render {rd.shape} differ in shape")
+            files["shaded"] = f"{stem}_shaded.png"
+            _save_png(sh, img_dir / files["shaded"])
+            shown.insert(2, ("surface", "shaded"))
         v = by_name[vi.name]
         caption = f"PSNR {_fmt(v.psnr, 2)} dB, SSIM {_fmt(v.ssim, 4)}, LPIPS {_fmt(v.lpips, 4)}"
         parts.append(f"<h3>{e(vi.name)}</h3><div class='view' data-name='{e(vi.name)}'>")
-        for label, key in (("ground truth", "gt"), ("render", "render"), ("error", "error")):
+        for label, key in shown:
             parts.append(f"<figure><img src='{IMAGES_DIR}/{files[key]}' alt='{label}'>"
                          f"<figcaption>{label}{' - ' + caption if key == 'render' else ''}</figcaption></figure>")
         parts.append("</div>")

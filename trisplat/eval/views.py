@@ -14,6 +14,9 @@ from trisplat.eval.report import SplitMetrics, ViewImages, ViewMetrics, write_me
 MODES = ("hard", "soft")
 SPLITS = ("test", "train")
 REPORT_MAX_IMAGE_VIEWS = 24  # views whose pictures the report shows (evenly spaced); the table lists all of them
+REPORT_SHADED_VIEWS = 4  # of those, views also shown as the bare surface (grey, headlight-lit); one hard render each
+SHADED_ALBEDO = 0.8  # grey level of a surface facing the camera
+SHADED_AMBIENT = 0.15  # share of the light that does not depend on the angle (grazing faces stay visible)
 
 
 def soft_sigma(run) -> float:
@@ -66,6 +69,38 @@ def render_view(scene, camera, mode: str, background, sigma: float | None = None
     return out.rgb.clamp(0.0, 1.0).cpu().numpy().astype(np.float32)
 
 
+def render_shaded(scene, camera, background, near: float = 0.01, supersample: int = 1) -> np.ndarray:
+    """The bare surface of a TriangleScene from `camera`: the opaque z-buffer render (render.rasterize_hard) with
+    every face a plain grey lit by a headlight (a light at the camera), so shape shows without colour. float32
+    numpy [H,W,3] in [0,1].
+
+    A pixel showing a face with unit normal n along the unit ray direction d from the camera gets
+    SHADED_ALBEDO * (SHADED_AMBIENT + (1 - SHADED_AMBIENT) * |n . d|) (Lambert, two-sided); empty pixels get
+    `background`. supersample s: shaded at s x s samples per pixel, then averaged (anti-aliased edges).
+    """
+    from trisplat import render
+    from trisplat.render.inputs import check_supersample
+
+    s = check_supersample(supersample)
+    W, H = camera.width * s, camera.height * s
+    K = np.asarray(camera.K, dtype=np.float64).copy()
+    K[:2] *= s
+    grey = torch.full((scene.positions.shape[0], 3), 0.5)
+    with torch.no_grad():
+        out = render.rasterize_hard(scene.positions, scene.faces.to(torch.int32), grey,
+                                    torch.as_tensor(camera.world_to_camera, dtype=torch.float32),
+                                    torch.as_tensor(K, dtype=torch.float32), W, H, near=near)
+    n = out.normal.cpu().numpy().astype(np.float64)  # unit face normal, camera frame
+    u, v = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
+    d = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    lit = SHADED_ALBEDO * (SHADED_AMBIENT + (1 - SHADED_AMBIENT) * np.abs((n * d).sum(-1)))
+    covered = out.alpha.cpu().numpy() > 0.5
+    img = np.where(covered[..., None], lit[..., None], np.asarray(background, dtype=np.float64)[None, None, :])
+    img = img.reshape(camera.height, s, camera.width, s, 3).mean(axis=(1, 3))
+    return img.astype(np.float32)
+
+
 def _render_options(config: dict) -> dict:
     """Renderer settings the run trained with that also matter at evaluation time."""
     return {k: config[k] for k in ("near", "tile_size", "backend") if k in config}
@@ -115,6 +150,8 @@ def evaluate_run(
     except FileNotFoundError as exc:
         lpips_note = str(exc)
     shown = set(np.linspace(0, len(indices) - 1, min(len(indices), REPORT_MAX_IMAGE_VIEWS)).round().astype(int))
+    shaded = set(sorted(shown)[:: max(1, -(-len(shown) // REPORT_SHADED_VIEWS))][:REPORT_SHADED_VIEWS]) if report \
+        else set()
 
     views: list[ViewMetrics] = []
     images: list[ViewImages] = []
@@ -133,7 +170,9 @@ def evaluate_run(
         views.append(ViewMetrics(index=i, name=name, psnr=psnr(gt, rgb), ssim=ssim(gt, rgb), lpips=lp))
         bar.set_postfix(psnr=f"{np.mean([v.psnr for v in views]):.2f}")
         if k in shown:
-            images.append(ViewImages(name=name, gt=gt, render=rgb))
+            surface = render_shaded(scene, cam, data.background, options.get("near", 0.01), ss) if k in shaded \
+                else None
+            images.append(ViewImages(name=name, gt=gt, render=rgb, shaded=surface))
 
     history = run.history()
     extra = {"run": str(run.path), "step": run.state.get("step"), "finished": run.state.get("finished"),
