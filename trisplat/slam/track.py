@@ -41,9 +41,9 @@ class TrackConfig:
     """pixels count only where the rendered alpha exceeds this (well-covered pixels)"""
     outlier_depth: float = 0.1
     """pixels whose rendered and observed depths differ by more than this (metres) are ignored"""
-    tol: float = 1e-4
-    """converged when the loss fell by less than this fraction over `patience` iterations ..."""
-    patience: int = 4
+    tol: float = 1e-3
+    """converged when no iteration in the last `patience` improved the best loss by this fraction ..."""
+    patience: int = 5
     min_step: float = 2e-6
     """... or when an iteration moved the pose by less than this (metres / radians)"""
 
@@ -59,13 +59,13 @@ class TrackResult:
 
 
 def pose_loss(pos_cam: torch.Tensor, faces, colors, opacities, sigma: float, rgb: torch.Tensor, depth: torch.Tensor,
-              K: torch.Tensor, cfg: TrackConfig, supersample: int = 1) -> tuple[torch.Tensor, float]:
+              K: torch.Tensor, cfg: TrackConfig, supersample: int = 1, **render_options) -> tuple[torch.Tensor, float]:
     """Tracking loss of camera-frame vertex positions [V,3] against one observation (rgb [H,W,3], depth [H,W] metres,
     0 invalid); returns (loss, coverage). Coarse levels render `supersample` x finer and box-filter down, so the
-    map's small triangles cover the coarse pixels as they cover the fine ones."""
+    map's small triangles cover the coarse pixels as they cover the fine ones. render_options go to rasterize."""
     H, W = depth.shape
     out = rasterize(pos_cam, faces, colors, opacities, torch.tensor(float(sigma)), IDENTITY, K, W, H,
-                    opacity_mode="mean", supersample=supersample)
+                    opacity_mode="mean", supersample=supersample, **render_options)
     alpha = out.alpha
     surf = out.depth / alpha.clamp_min(1e-6)
     valid = depth > 0
@@ -118,8 +118,11 @@ def track_frame(positions: torch.Tensor, faces: torch.Tensor, colors: torch.Tens
             before = xi.detach().clone()
             opt.step()
             step = (torch.cat([v, w]).detach() - before).abs().max().item()
+            # Converged: the pose stopped moving, or no new best loss (by a relative margin tol) for `patience`
+            # iterations (Adam oscillates around the optimum, so a single worse step is not the test).
             if step < cfg.min_step * decay or (
-                len(hist) > cfg.patience and hist[-cfg.patience - 1] - lv < cfg.tol * hist[-cfg.patience - 1]
+                len(hist) > cfg.patience
+                and min(hist[-cfg.patience:]) > (1 - cfg.tol) * min(hist[: -cfg.patience])
             ):
                 converged = True
                 break
