@@ -7,7 +7,8 @@ RUN/
   history.jsonl        one JSON object per logged step: step, wall_s, loss, psnr, faces, vertices, sigma
                        (and test_psnr on evaluation steps)
   model.ply            the full model: every SH coefficient and the opacity, reloadable losslessly
-  mesh.ply, mesh.obj (+ mesh.mtl), mesh.glb   the opaque mesh, per-vertex RGB, in the capture's frame
+  mesh.ply, mesh.obj (+ mesh.mtl), mesh.glb   the opaque mesh, per-vertex RGB, in the capture's frame (the GLB
+                       turned Y-up, as glTF defines)
   metrics.json         final metrics
   renders/             a few test renders (hard mode)
 """

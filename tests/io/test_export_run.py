@@ -41,7 +41,9 @@ def test_export_run_writes_capture_frame_meshes(run_dir, tmp_path):
     np.testing.assert_allclose(expected_rgb, rgb, atol=1e-6)
     for name in ("mesh.ply", "mesh.obj", "mesh.glb"):
         p, f, c = load_mesh(out / name)
-        np.testing.assert_allclose(p, capture, rtol=1e-6, atol=1e-6)
+        # glTF is Y-up by definition: the GLB turns the capture's up (here the default, +Z) to +Y
+        expected = capture[:, [0, 2, 1]] * [1, 1, -1] if name == "mesh.glb" else capture
+        np.testing.assert_allclose(p, expected, rtol=1e-6, atol=1e-6)
         np.testing.assert_array_equal(f, scene.faces.numpy())
         assert np.abs(c - rgb).max() <= 0.5 / 255 + 1e-6
     back, N2 = load_model_ply(out / "model.ply")

@@ -21,7 +21,7 @@ def _mesh(seed: int = 0):
 @pytest.mark.parametrize("suffix", sorted(FORMATS))
 def test_round_trip_keeps_positions_faces_and_colours(tmp_path, suffix):
     positions, faces, colors = _mesh()
-    written = export_mesh(tmp_path / f"m{suffix}", positions, faces, colors)
+    written = export_mesh(tmp_path / f"m{suffix}", positions, faces, colors, up=None)  # None: axes as given
     assert written[0] == tmp_path / f"m{suffix}"
     p, f, c = load_mesh(written[0])
     np.testing.assert_array_equal(p, positions)

@@ -24,9 +24,10 @@ class ExportConfig:
     """run folder written by `trisplat train`"""
     formats: tuple[Literal["ply", "obj", "glb", "model"], ...] = ("ply", "obj", "glb")
     """formats to write: ply (binary, per-vertex RGB), obj (+ mtl), glb (glTF 2.0, COLOR_0), model (SH PLY)"""
-    up: Literal["y", "z"] | None = None
+    up: Literal["auto", "y", "z", "capture"] = "auto"
     """rotate meshes so the capture's up (mean camera up vector) becomes +Y (glTF, Unity) or +Z (Blender, MuJoCo);
-    default: keep the capture's own axes"""
+    capture: keep the capture's own axes in every format; auto: GLB Y-up (glTF defines +Y as up), PLY and OBJ in
+    the capture's axes"""
     out: Path | None = None
     """output folder (default: RUN/export)"""
     force: bool = False
@@ -43,6 +44,7 @@ def main(argv: list[str]) -> int:
         names = ", ".join(str(p) for p in existing)
         print(f"trisplat export: error: would overwrite {names}; pass --force to replace them", file=sys.stderr)
         return 1
-    for path in export_run(cfg.run, formats=formats, up=cfg.up, out_dir=out):
+    up = None if cfg.up == "capture" else cfg.up
+    for path in export_run(cfg.run, formats=formats, up=up, out_dir=out):
         print(path)
     return 0

@@ -91,9 +91,12 @@ def extract_run(args: ExtractArgs) -> ExtractResult:
     obj, rest = split_mesh(positions, faces, colors, selected)
     out.mkdir(parents=True, exist_ok=True)
     to_capture = np.linalg.inv(np.asarray(normalization, dtype=np.float64))
-    export_mesh(obj_path, obj.positions, obj.faces, obj.colors, transform=to_capture)
+    from trisplat.io import estimate_capture_up
+
+    up = estimate_capture_up(data.cameras)  # a GLB is turned Y-up (glTF's up); other formats keep the capture's axes
+    export_mesh(obj_path, obj.positions, obj.faces, obj.colors, transform=to_capture, capture_up=up)
     if len(rest.faces):
-        export_mesh(rest_path, rest.positions, rest.faces, rest.colors, transform=to_capture)
+        export_mesh(rest_path, rest.positions, rest.faces, rest.colors, transform=to_capture, capture_up=up)
     result = ExtractResult(masks=len(masks), faces=len(faces), object_faces=len(obj.faces),
                            remainder_faces=len(rest.faces), faces_seen=int(votes.seen.sum()),
                            unmatched_mask_pixels=votes.unmatched_mask_pixels, object_path=str(obj_path),

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -10,7 +11,8 @@ import numpy as np
 import tyro
 
 MESH_FILE = "mesh_connected.ply"
-STATS_FILE = "mesh_connected_stats.json"
+STATS_SUFFIX = "_stats.json"  # the statistics are written beside the mesh, as <mesh stem>_stats.json
+STATS_FILE = "mesh_connected" + STATS_SUFFIX
 
 
 @dataclass
@@ -28,8 +30,9 @@ class MeshConfig:
     """drop pieces with less than this fraction of the total area; 0 keeps all"""
     repair_non_manifold: bool = True
     """at edges with more than two faces keep the two best-shaped faces (--no-repair-non-manifold keeps all)"""
-    up: Literal["y", "z"] | None = None
-    """rotate the export so the capture's up becomes +Y ('y') or +Z ('z'); default keeps the capture's axes"""
+    up: Literal["auto", "y", "z", "capture"] = "auto"
+    """rotate the export so the capture's up becomes +Y ('y') or +Z ('z'); capture: keep the capture's axes;
+    auto: +Y for .glb (glTF defines +Y as up), the capture's axes for .ply and .obj"""
     force: bool = False
     """replace the output mesh (and its statistics file) if they exist"""
 
@@ -37,6 +40,7 @@ class MeshConfig:
 def main(argv: list[str]) -> int:
     cfg = tyro.cli(MeshConfig, args=argv, prog="trisplat mesh", description=__doc__)
     from trisplat.io import FORMATS, export_mesh
+    from trisplat.io.mesh_files import resolve_up
     from trisplat.io.atomic import atomic_write_text, refuse_to_overwrite
     from trisplat.mesh.connect import ConnectConfig, connect_faces
     from trisplat.mesh.stats import mesh_statistics
@@ -48,7 +52,8 @@ def main(argv: list[str]) -> int:
         raise ValueError(f"{out}: unknown mesh format {Path(out).suffix!r}; use one of {', '.join(FORMATS)}")
     if not Path(out).parent.is_dir():
         raise FileNotFoundError(f"{out}: folder {Path(out).parent} does not exist")
-    targets = [out, Path(out).parent / STATS_FILE] + ([Path(out).with_suffix(".mtl")]
+    stats_path = Path(out).with_name(Path(out).stem + STATS_SUFFIX)  # RUN/mesh_connected_stats.json by default
+    targets = [out, stats_path] + ([Path(out).with_suffix(".mtl")]
                                                       if Path(out).suffix.lower() == ".obj" else [])
     refuse_to_overwrite(targets, cfg.force)  # before the (long) triangulation
     scene, normalization = run.load_model()
@@ -64,7 +69,18 @@ def main(argv: list[str]) -> int:
                          f"({rep.num_vertices} vertices, {scene.num_faces} soup faces; {'; '.join(rep.notes)})")
     colors = scene.base_colors().detach().cpu().numpy()[cleaned.vertex_source]
     to_capture = np.linalg.inv(np.asarray(normalization, dtype=np.float64))
-    export_mesh(out, cleaned.vertices, cleaned.faces, np.clip(colors, 0.0, 1.0), up=cfg.up, transform=to_capture)
+    up = None if cfg.up == "capture" else cfg.up
+    capture_up = None
+    if resolve_up(up, out) is not None:
+        from trisplat.io import estimate_capture_up
+
+        try:
+            capture_up = estimate_capture_up(run.load_scene_data().cameras)
+        except (FileNotFoundError, ValueError) as exc:
+            print(f"trisplat mesh: cannot read the capture's cameras ({exc}); assuming a Z-up capture",
+                  file=sys.stderr)
+    export_mesh(out, cleaned.vertices, cleaned.faces, np.clip(colors, 0.0, 1.0), up=up, transform=to_capture,
+                capture_up=capture_up)
     capture_positions = cleaned.vertices @ to_capture[:3, :3].T + to_capture[:3, 3]
     stats = mesh_statistics(capture_positions, cleaned.faces).to_dict()
     report = {
@@ -76,6 +92,6 @@ def main(argv: list[str]) -> int:
                                                      "num_flipped")},
         "statistics": stats,
     }
-    atomic_write_text(Path(out).parent / STATS_FILE, json.dumps(report, indent=2))
+    atomic_write_text(stats_path, json.dumps(report, indent=2))
     print(json.dumps(report, indent=2))
     return 0

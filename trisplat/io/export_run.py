@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from trisplat.io.axes import estimate_capture_up
-from trisplat.io.mesh_files import FORMATS, export_mesh
+from trisplat.io.mesh_files import FORMATS, export_mesh, resolve_up
 from trisplat.io.model_ply import save_model_ply
 
 MODEL_FORMAT = "model"  # the full model PLY (every SH band, opacity): `model.ply`
@@ -35,13 +35,13 @@ def export_targets(out_dir: Path, formats: Sequence[str]) -> list[Path]:
 def export_run(
     run_dir: str | Path,
     formats: Sequence[str] = ("ply", "obj", "glb"),
-    up: str | None = None,
+    up: str | None = "auto",
     out_dir: str | Path | None = None,
 ) -> list[Path]:
     """Write the run's model as `mesh.<fmt>` (base colour = SH DC term) and/or `model.ply` into `out_dir`
     (default: the run folder; existing files are replaced). Meshes land in the capture frame (the inverse of the
     scene normalisation); `up='y'|'z'` rotates the meshes so the capture's up direction, estimated from the
-    training cameras (see trisplat.io.axes), becomes +Y / +Z. The model PLY is never rotated (SH would change).
+    training cameras (see trisplat.io.axes), becomes +Y / +Z; 'auto' does so (+Y) for GLB only, None for none. The model PLY is never rotated (SH would change).
     Returns the files written.
     """
     from trisplat.run import open_run
@@ -52,7 +52,7 @@ def export_run(
     out.mkdir(parents=True, exist_ok=True)
     scene, normalization = run.load_model()
     capture_up = None
-    if up is not None:
+    if any(f != MODEL_FORMAT and resolve_up(up, f"x.{f}") is not None for f in formats):
         try:
             capture_up = estimate_capture_up(run.load_scene_data().cameras)
         except (FileNotFoundError, ValueError) as exc:

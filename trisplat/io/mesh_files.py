@@ -16,6 +16,7 @@ from trisplat.io.atomic import atomic_target, atomic_write_bytes, atomic_write_t
 from trisplat.io.axes import up_rotation
 
 MTL_MATERIAL = "default"
+GLTF_SUFFIXES = (".glb",)  # formats whose specification fixes the up axis (+Y)
 GL_ARRAY_BUFFER, GL_ELEMENT_ARRAY_BUFFER = 34962, 34963  # glTF bufferView.target values
 
 
@@ -129,12 +130,20 @@ def _check_mesh(positions, faces, colors) -> tuple[np.ndarray, np.ndarray, np.nd
     return positions, faces.astype(np.int64), colors
 
 
+def resolve_up(up: str | None, path: str | Path) -> str | None:
+    """The up axis a mesh file gets: 'auto' means 'y' for glTF (.glb) and the capture's own axes (None) for the
+    other formats; None, 'y' and 'z' are kept."""
+    if up == "auto":
+        return "y" if Path(path).suffix.lower() in GLTF_SUFFIXES else None
+    return up
+
+
 def export_mesh(
     path: str | Path,
     positions,
     faces,
     colors=None,
-    up: str | None = None,
+    up: str | None = "auto",
     transform: np.ndarray | None = None,
     capture_up: np.ndarray | None = None,
 ) -> list[Path]:
@@ -143,10 +152,13 @@ def export_mesh(
     positions [V,3], faces [F,3] (counter-clockwise = outward), colors [V,3] in [0,1] or None (stored as 8-bit).
     transform: optional [4,4] applied to the positions first (e.g. the inverse scene normalisation).
     up: None keeps the axes; 'y' / 'z' then rotates so that `capture_up` (default: see `up_rotation`) becomes
-    +Y / +Z. A transform that mirrors (negative determinant) flips the winding so normals stay outward.
+    +Y / +Z; 'auto' (default) is 'y' for .glb (glTF is Y-up by definition, engines show a Z-up mesh on its side)
+    and None for the other formats. A transform that mirrors (negative determinant) flips the winding so normals
+    stay outward.
     """
     path = Path(path)
     fmt = _format_of(path)
+    up = resolve_up(up, path)
     positions, faces, colors = _check_mesh(positions, faces, colors)
     M = np.eye(4) if transform is None else np.asarray(transform, dtype=np.float64)
     if M.shape != (4, 4) or not np.isfinite(M).all():

@@ -33,8 +33,9 @@ def output_stems(cameras, indices) -> dict[int, str]:
     return stems
 
 
-def write_model_files(run_dir: Path, scene, normalization: np.ndarray) -> None:
-    """model.ply (every SH band and opacity, reloadable) and the opaque mesh in the capture's frame."""
+def write_model_files(run_dir: Path, scene, normalization: np.ndarray, capture_up: np.ndarray | None = None) -> None:
+    """model.ply (every SH band and opacity, reloadable) and the opaque mesh in the capture's frame (mesh.glb
+    turned so that `capture_up`, the capture's up direction, is +Y, as glTF defines; see io.export_mesh)."""
     from trisplat.io import export_mesh, save_model_ply
 
     save_model_ply(run_dir / layout.MODEL, scene, normalization)
@@ -42,7 +43,7 @@ def write_model_files(run_dir: Path, scene, normalization: np.ndarray) -> None:
     to_capture = np.linalg.inv(normalization)
     for suffix in MESH_FORMATS:
         export_mesh(run_dir / f"mesh.{suffix}", scene.positions.numpy(), scene.faces.numpy(), colors,
-                    transform=to_capture)
+                    transform=to_capture, capture_up=capture_up)
 
 
 def write_outputs(trainer, pruned) -> dict:
@@ -58,7 +59,10 @@ def write_outputs(trainer, pruned) -> dict:
     run_dir, data, cfg = trainer.run_dir, trainer.data, trainer.cfg
     scene = trainer.ts.to_scene()
     normalization = np.asarray(data.normalization, dtype=np.float64)
-    write_model_files(run_dir, scene, normalization)
+    from trisplat.io import estimate_capture_up
+
+    write_model_files(run_dir, scene, normalization,
+                      estimate_capture_up([data.cameras[int(i)] for i in data.train_indices]))
     # state.json stays "unfinished" until metrics.json exists, so a crash here is redone by --resume
 
     renders = run_dir / layout.RENDERS
