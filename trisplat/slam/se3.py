@@ -1,10 +1,18 @@
-"""SE(3) for tracking: the exponential map in torch (differentiable), quaternions, TUM trajectories, ATE."""
+"""SE(3) for tracking: the exponential map in torch (differentiable); trajectory files and ATE re-exported from
+trisplat.slam.trajectory (numpy only)."""
 from __future__ import annotations
 
-from pathlib import Path
-
-import numpy as np
 import torch
+
+from trisplat.slam.trajectory import (  # noqa: F401  (re-exported)
+    align_rigid,
+    ate_rmse,
+    log_so3_angle,
+    matrix_to_quat_xyzw,
+    quat_xyzw_to_matrix,
+    read_tum_trajectory,
+    write_tum_trajectory,
+)
 
 SMALL_ANGLE2 = 1e-10  # rad^2: below this the series expansions of the exponential map are used
 
@@ -34,77 +42,3 @@ def exp_se3(xi: torch.Tensor) -> torch.Tensor:
     bottom = torch.tensor([[0.0, 0.0, 0.0, 1.0]], dtype=xi.dtype)
     return torch.cat([top, bottom], 0)
 
-
-def log_so3_angle(R: np.ndarray) -> float:
-    """Rotation angle (radians) of a [3,3] rotation matrix."""
-    return float(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0)))
-
-
-def matrix_to_quat_xyzw(R: np.ndarray) -> np.ndarray:
-    """Unit quaternion (x, y, z, w) with w >= 0 of a rotation matrix [3,3]."""
-    from scipy.spatial.transform import Rotation
-
-    q = Rotation.from_matrix(R).as_quat()
-    return -q if q[3] < 0 else q
-
-
-def quat_xyzw_to_matrix(q) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_quat(np.asarray(q, dtype=np.float64)).as_matrix()
-
-
-def write_tum_trajectory(path: str | Path, stamps, c2ws) -> Path:
-    """TUM trajectory file: one line 'stamp tx ty tz qx qy qz qw' (camera-to-world) per pose."""
-    path = Path(path)
-    lines = ["# trisplat slam: timestamp tx ty tz qx qy qz qw (camera-to-world, OpenCV camera axes, metres)"]
-    for t, T in zip(stamps, c2ws):
-        q = matrix_to_quat_xyzw(T[:3, :3])
-        lines.append(f"{t:.6f} " + " ".join(f"{x:.9f}" for x in (*T[:3, 3], *q)))
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text("\n".join(lines) + "\n")
-    tmp.replace(path)
-    return path
-
-
-def read_tum_trajectory(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
-    """(stamps [N], camera-to-world [N,4,4]) of a TUM trajectory file."""
-    path = Path(path)
-    stamps, poses = [], []
-    for no, line in enumerate(path.read_text().splitlines(), 1):
-        if not line.strip() or line.startswith("#"):
-            continue
-        vals = line.split()
-        try:
-            nums = [float(x) for x in vals]
-        except ValueError:
-            raise ValueError(f"{path}:{no}: malformed trajectory line (need 8 numbers)") from None
-        if len(nums) != 8:
-            raise ValueError(f"{path}:{no}: malformed trajectory line: {len(nums)} values, need 8")
-        T = np.eye(4)
-        T[:3, :3] = quat_xyzw_to_matrix(nums[4:8])
-        T[:3, 3] = nums[1:4]
-        stamps.append(nums[0])
-        poses.append(T)
-    return np.array(stamps), np.array(poses).reshape(-1, 4, 4)
-
-
-def align_rigid(est: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Least-squares rotation R [3,3] and translation t [3] with R @ est_i + t ~ ref_i (Horn/Umeyama, no scale)."""
-    mu_e, mu_r = est.mean(0), ref.mean(0)
-    H = (est - mu_e).T @ (ref - mu_r)
-    U, _, Vt = np.linalg.svd(H)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
-    R = Vt.T @ D @ U.T
-    return R, mu_r - R @ mu_e
-
-
-def ate_rmse(est_c2w: np.ndarray, ref_c2w: np.ndarray) -> tuple[float, np.ndarray]:
-    """Absolute trajectory error: RMSE (same units as the poses) of camera centres after the rigid (SE(3), no scale)
-    alignment of the estimate onto the reference; also returns the per-frame errors."""
-    e, r = est_c2w[:, :3, 3], ref_c2w[:, :3, 3]
-    if len(e) < 3:
-        raise ValueError(f"ATE needs at least 3 poses with a reference, got {len(e)}")
-    R, t = align_rigid(e, r)
-    err = np.linalg.norm(e @ R.T + t - r, axis=1)
-    return float(np.sqrt(np.mean(err**2))), err
