@@ -146,6 +146,9 @@ def run_training(args: TrainArgs, explicit: set[str] | None = None):
                         "format": cfg.data_format}
         data_path = str(args.data.resolve())
     data = load_dataset(data_path, **data_options)  # inputs checked before anything in `out` changes
+    if not args.quiet:
+        for w in data.warnings:  # what the loader fixed, skipped or could not use, said before the long work
+            print(f"warning: {w}", file=sys.stderr)
     if args.resume and not resume:
         print(f"{out}: no checkpoint yet (stopped during initialisation): starting it again with its saved "
               "configuration", file=sys.stderr)

@@ -84,6 +84,14 @@ class _Reader:
             )
 
 
+def _check_pose(path: Path, what: str, quaternion, translation) -> None:
+    """Refuse a non-finite pose or a zero quaternion (pycolmap would silently turn it into the identity)."""
+    q, t = np.asarray(quaternion, np.float64), np.asarray(translation, np.float64)
+    if not (np.isfinite(q).all() and np.isfinite(t).all()) or np.linalg.norm(q) < 1e-12:
+        raise ValueError(f"{path}: {what}: invalid pose (quaternion {', '.join(f'{v:g}' for v in q)}, translation "
+                         f"{', '.join(f'{v:g}' for v in t)}); rotations must be finite non-zero quaternions")
+
+
 def validate_binary_model(model_dir: Path) -> None:
     """Walk cameras.bin, images.bin and points3D.bin record by record; raise ValueError naming a bad file.
 
@@ -91,7 +99,7 @@ def validate_binary_model(model_dir: Path) -> None:
     """
     r = _Reader(model_dir / "cameras.bin")
     for i in range(r.count(24, "cameras")):
-        _, model_id, w, h = r.read("iiQQ", f"camera {i}")
+        cam_id, model_id, w, h = r.read("iiQQ", f"camera {i}")
         if model_id not in COLMAP_MODEL_IDS:
             raise ValueError(f"{r.path}: unknown camera model id {model_id} (camera record {i})")
         name, n_params = COLMAP_MODEL_IDS[model_id]
@@ -100,13 +108,19 @@ def validate_binary_model(model_dir: Path) -> None:
                 f"{r.path}: unsupported camera model {name} (camera record {i}); "
                 f"supported: {', '.join(CAMERA_MODELS)}"
             )
-        r.read(f"{n_params}d", f"parameters of camera {i}")
+        params = r.read(f"{n_params}d", f"parameters of camera {i}")
+        n_focal = 1 if name == "SIMPLE_PINHOLE" or "RADIAL" in name else 2  # f, or fx fy, lead the parameters
+        if not np.isfinite(params).all() or w <= 0 or h <= 0 or min(params[:n_focal]) <= 0:
+            raise ValueError(f"{r.path}: camera {cam_id} ({name}, {w}x{h}): invalid values (parameters "
+                             f"{', '.join(f'{p:g}' for p in params)}; focal lengths and sizes must be positive and "
+                             "finite)")
     r.finish()
 
     r = _Reader(model_dir / "images.bin")
     for i in range(r.count(64 + 1 + 8, "images")):
-        r.read("I7dI", f"image {i}")
-        r.cstring(f"name of image {i}")
+        record = r.read("I7dI", f"image {i}")
+        name = r.cstring(f"name of image {i}")
+        _check_pose(r.path, f"image {record[0]} ({name})", record[1:5], record[5:8])
         (n2d,) = r.read("Q", f"point count of image {i}")
         r.skip(24 * n2d, f"2D points of image {i}")
     r.finish()
@@ -164,6 +178,8 @@ def validate_text_model(model_dir: Path) -> None:
         if len(toks) < 10:
             raise ValueError(f"{path}:{no}: malformed COLMAP text file: image line needs 10 fields, got {len(toks)}")
         numbers(path, no, toks[:9], "image pose")
+        _check_pose(path, f"line {no}, image {toks[0]} ({toks[9]})", [float(t) for t in toks[1:5]],
+                    [float(t) for t in toks[5:8]])
         if k + 1 < len(body):
             no2, pts = body[k + 1]
             pts_t = pts.split()
@@ -214,11 +230,20 @@ def read_colmap(root: Path, images: str = "images") -> RawCapture:
         raise ValueError(f"{model_dir}: empty scene: the COLMAP model has no posed images")
 
     points = colors = None
+    ext = ".bin" if binary else ".txt"
     if len(rec.points3D):
         pts = list(rec.points3D.values())
         points = np.array([p.xyz for p in pts], dtype=np.float64).reshape(-1, 3)
         colors = (np.array([p.color for p in pts], dtype=np.float32) / 255.0).reshape(-1, 3)
-    ext = ".bin" if binary else ".txt"
+        finite = np.isfinite(points).all(axis=1)
+        if not finite.all():
+            warnings.append(f"{model_dir / ('points3D' + ext)}: dropped {int((~finite).sum())} of {len(points)} "
+                            "points with non-finite coordinates")
+            points, colors = points[finite], colors[finite]
+    if points is None or not len(points):
+        warnings.append(f"{model_dir / ('points3D' + ext)}: the model holds no (usable) 3D points: initialisation "
+                        "cannot use them (init auto falls back to the visual hull or random triangles)")
+        points = colors = None
     return RawCapture(
         format="colmap",
         root=root,

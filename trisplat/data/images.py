@@ -23,6 +23,37 @@ def image_size(path: Path) -> tuple[int, int]:
         raise ValueError(f"{path}: unreadable image ({exc})") from None
 
 
+# what a complete file of each format ends with (trailing bytes after it are tolerated only if they are padding)
+_FILE_ENDS = {"JPEG": b"\xff\xd9", "PNG": b"IEND\xaeB`\x82"}
+_SUFFIX_FORMATS = {".jpg": "JPEG", ".jpeg": "JPEG", ".png": "PNG"}
+
+
+def check_image_file(path: Path) -> tuple[int, int, str | None]:
+    """(width, height, warning or None) from the file header, after two cheap checks of the whole file: a JPEG or
+    PNG must end with its end marker (a truncated file is refused now, not half-way through training), and a file
+    whose content is another format than its suffix says (a JPEG renamed .png: no alpha channel) gets a warning."""
+    path = Path(path)
+    w, h = image_size(path)
+    with Image.open(path) as im:
+        fmt = im.format
+    end = _FILE_ENDS.get(fmt)
+    if end is not None:
+        with open(path, "rb") as f:
+            f.seek(0, os.SEEK_END)
+            size = f.tell()
+            f.seek(max(0, size - 4096))
+            tail = f.read().rstrip(b"\x00\r\n\t ")
+        if not tail.endswith(end):
+            raise ValueError(f"{path}: truncated or damaged {fmt} file (it does not end with the {fmt} end marker); "
+                             "re-export it or remove it from the capture")
+    expected = _SUFFIX_FORMATS.get(path.suffix.lower())
+    warning = None
+    if expected is not None and fmt is not None and fmt != expected:
+        warning = (f"{path}: a {fmt} file named {path.suffix}" + (" (it has no alpha channel)" if expected == "PNG"
+                                                                  and fmt == "JPEG" else ""))
+    return w, h, warning
+
+
 def read_image(path: Path) -> np.ndarray:
     """Decode to uint8 [H,W,3] (RGB) or [H,W,4] (RGBA, straight alpha); 16-bit greyscale is scaled to 8 bits."""
     path = Path(path)

@@ -14,7 +14,7 @@ from tqdm import tqdm
 
 from trisplat.cameras import Camera
 from trisplat.data.capture import RawCapture, RawView
-from trisplat.data.images import LRUArrays, image_size, read_image, save_image_atomic, to_float_rgb
+from trisplat.data.images import LRUArrays, check_image_file, read_image, save_image_atomic, to_float_rgb
 from trisplat.data.normalize import apply_to_points, apply_to_world_to_camera, normalization, robust_box
 from trisplat.data.options import LoadOptions
 from trisplat.data.types import SceneData
@@ -146,8 +146,12 @@ def make_depth(p: _Prepared) -> None:
 
 
 def _check_sizes(raw: RawCapture) -> None:
+    """Every image: complete (not truncated), of the size its camera expects; a file in another format than its
+    suffix says is warned about (raw.warnings)."""
     for v in raw.views:
-        w, h = image_size(v.image_path)
+        w, h, warning = check_image_file(v.image_path)
+        if warning:
+            raw.warnings.append(warning)
         if (w, h) != (v.camera.width, v.camera.height):
             raise ValueError(
                 f"{v.image_path}: image is {w}x{h} but its camera ({v.camera.model}) expects "

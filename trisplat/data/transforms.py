@@ -127,6 +127,22 @@ def _frames(meta: dict, path: Path) -> list[dict]:
     return frames
 
 
+def _check_one_image_size(views: list[RawView], files: list[Path]) -> None:
+    """A Blender capture gives one field of view (camera_angle_x) for all frames: an image of another size would
+    silently get another focal length. Refuse it, naming the file and the size of the others."""
+    from collections import Counter
+
+    sizes = Counter((v.camera.width, v.camera.height) for v in views)
+    if len(sizes) > 1:
+        (w, h), n = sizes.most_common(1)[0]
+        odd = [v for v in views if (v.camera.width, v.camera.height) != (w, h)]
+        raise ValueError(
+            f"{odd[0].image_path}: image is {odd[0].camera.width}x{odd[0].camera.height}, but {n} of the "
+            f"{len(views)} images of this capture are {w}x{h} ({len(odd)} differ); "
+            f"{', '.join(f.name for f in files)} give one camera_angle_x for every frame, so all images must have "
+            "one size")
+
+
 def read_blender(root: Path) -> RawCapture:
     """NeRF-synthetic: transforms_train.json + transforms_test.json (val is ignored); RGBA images."""
     views: list[RawView] = []
@@ -156,6 +172,7 @@ def read_blender(root: Path) -> RawCapture:
             split.append(name)
     if not views:
         raise ValueError(f"{root}: empty scene: no frames in {', '.join(str(f) for f in files)}")
+    _check_one_image_size(views, files)
     half = BLENDER_OBJECT_HALF_SIDE
     points, colors = read_point_ply(root / BLENDER_POINTS) if (root / BLENDER_POINTS).is_file() else (None, None)
     return RawCapture(
