@@ -1,0 +1,166 @@
+"""The Open3D baseline for `trisplat slam` benchmarks: frame-to-frame RGB-D odometry (hybrid photometric + geometric
+term) chained into a trajectory, and TSDF fusion of the same frames into a mesh; also a TSDF mesh fused
+with the capture's reference poses (the geometry reference both systems' meshes are compared with).
+
+Open3D is a benchmark dependency only (`pip install open3d-cpu==0.20.0`); nothing in trisplat imports it at run
+time. Usage: python -m trisplat.slam.open3d_baseline CAPTURE --out DIR [--downscale 2] [--max-frames N]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from trisplat.data.rgbd_stream import load_frame, open_stream
+from trisplat.slam.trajectory import ate_rmse, write_tum_trajectory
+
+VOXEL_M = 0.01  # TSDF voxel edge (metres)
+SDF_TRUNC_M = 0.04  # TSDF truncation distance (metres)
+DEPTH_TRUNC_M = 4.0  # depth beyond this is not used (metres)
+MAX_VOXELS_PER_SIDE = 400  # the uniform TSDF grid is at most this many voxels per side (coarser voxels beyond)
+
+
+def _o3d():
+    try:
+        import open3d as o3d
+    except ImportError:
+        raise ImportError("the Open3D baseline needs open3d: pip install open3d-cpu==0.20.0 (a benchmark-only "
+                          "dependency)") from None
+    return o3d
+
+
+def _bounds(frames, c2ws, K, stride: int = 8, every: int = 10):
+    """Box [2,3] (world, metres) of the depth points of every `every`-th frame under the given poses."""
+    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+    for (_, depth), c2w in list(zip(frames, c2ws))[::every]:
+        v, u = np.nonzero(depth[::stride, ::stride] > 0)
+        z = depth[::stride, ::stride][v, u]
+        z = z[z < DEPTH_TRUNC_M]
+        if not len(z):
+            continue
+        v, u = v[: len(z)] * stride, u[: len(z)] * stride
+        p = np.stack([(u + 0.5 - K[0, 2]) / K[0, 0] * z, (v + 0.5 - K[1, 2]) / K[1, 1] * z, z], 1)
+        p = p @ c2w[:3, :3].T + c2w[:3, 3]
+        lo, hi = np.minimum(lo, p.min(0)), np.maximum(hi, p.max(0))
+    return np.stack([lo - 2 * SDF_TRUNC_M, hi + 2 * SDF_TRUNC_M])
+
+
+def tsdf_mesh(o3d, frames, c2ws, intrinsic, K):
+    """Fuse (rgb uint8, depth float32 metres) frames at camera-to-world poses; returns an Open3D TriangleMesh.
+
+    A UniformTSDFVolume over the frames' box: with open3d-cpu 0.20.0 on the benchmark machine, ScalableTSDFVolume
+    and the tensor VoxelBlockGrid both returned empty meshes even for a single frame at the identity pose."""
+    box = _bounds(frames, c2ws, K)
+    length = float((box[1] - box[0]).max())
+    res = int(min(MAX_VOXELS_PER_SIDE, np.ceil(length / VOXEL_M)))
+    vol = o3d.pipelines.integration.UniformTSDFVolume(
+        length=length, resolution=res, sdf_trunc=SDF_TRUNC_M,
+        color_type=o3d.pipelines.integration.TSDFVolumeColorType.RGB8, origin=box[0].reshape(3, 1))
+    for (rgb, depth), c2w in zip(frames, c2ws):
+        rgbd = o3d.geometry.RGBDImage.create_from_color_and_depth(
+            o3d.geometry.Image(rgb), o3d.geometry.Image(depth), depth_scale=1.0, depth_trunc=DEPTH_TRUNC_M,
+            convert_rgb_to_intensity=False)
+        vol.integrate(rgbd, intrinsic, np.linalg.inv(c2w))
+    return vol.extract_triangle_mesh()
+
+
+def largest_component_fraction(o3d, mesh) -> float:
+    labels, counts, _ = mesh.cluster_connected_triangles()
+    counts = np.asarray(counts)
+    return float(counts.max() / counts.sum()) if counts.size else 0.0
+
+
+def run(capture: Path, out: Path, downscale: int = 2, max_frames: int = 0, reference_mesh: bool = True) -> dict:
+    o3d = _o3d()
+    out.mkdir(parents=True, exist_ok=True)
+    stream = open_stream(capture)
+    n = len(stream) if not max_frames else min(max_frames, len(stream))
+    W, H = stream.size_at(downscale)
+    K = stream.K_at(downscale)
+    # Open3D puts pixel centres at integers; ours are at +0.5 (docs/conventions.md).
+    intrinsic = o3d.camera.PinholeCameraIntrinsic(W, H, K[0, 0], K[1, 1], K[0, 2] - 0.5, K[1, 2] - 0.5)
+    t_load = time.time()
+    frames = []
+    for i in range(n):
+        rgb, depth = load_frame(stream, i, downscale)
+        frames.append((np.ascontiguousarray((rgb * 255 + 0.5).astype(np.uint8)), np.ascontiguousarray(depth)))
+    load_s = time.time() - t_load
+
+    t0 = time.time()
+    option = o3d.pipelines.odometry.OdometryOption()
+    option.depth_max = DEPTH_TRUNC_M
+    jac = o3d.pipelines.odometry.RGBDOdometryJacobianFromHybridTerm()
+
+    def rgbd_intensity(k):
+        rgb, depth = frames[k]
+        return o3d.geometry.RGBDImage.create_from_color_and_depth(
+            o3d.geometry.Image(rgb), o3d.geometry.Image(depth), depth_scale=1.0, depth_trunc=DEPTH_TRUNC_M,
+            convert_rgb_to_intensity=True)
+
+    c2w = [np.eye(4)]
+    failures = 0
+    prev = rgbd_intensity(0)
+    velocity = np.eye(4)
+    for k in range(1, n):
+        cur = rgbd_intensity(k)
+        # source = frame k, target = frame k-1: T maps frame-k camera points into frame k-1 (constant-velocity init)
+        ok, T, _ = o3d.pipelines.odometry.compute_rgbd_odometry(cur, prev, intrinsic, velocity, jac, option)
+        if not ok:
+            failures += 1
+            T = velocity
+        velocity = T
+        c2w.append(c2w[-1] @ T)
+        prev = cur
+        if (k + 1) % 50 == 0:
+            print(f"odometry frame {k + 1}/{n}  {(k + 1) / (time.time() - t0):.1f} fps", flush=True)
+    odo_s = time.time() - t0
+    t1 = time.time()
+    mesh = tsdf_mesh(o3d, frames, c2w, intrinsic, K)
+    tsdf_s = time.time() - t1
+    stamps = [f.stamp if f.stamp is not None else float(i) for i, f in enumerate(stream.frames[:n])]
+    write_tum_trajectory(out / "trajectory.txt", stamps, c2w)
+    o3d.io.write_triangle_mesh(str(out / "mesh.ply"), mesh)
+    res = {
+        "capture": str(capture), "frames": n, "resolution": [W, H], "odometry_failures": failures,
+        "load_seconds": load_s, "odometry_seconds": odo_s, "tsdf_seconds": tsdf_s, "seconds": odo_s + tsdf_s,
+        "mesh": {"faces": len(mesh.triangles), "vertices": len(mesh.vertices),
+                 "largest_component_fraction": largest_component_fraction(o3d, mesh)},
+        "tsdf": {"volume": "UniformTSDFVolume", "voxel_m": VOXEL_M, "sdf_trunc_m": SDF_TRUNC_M,
+                 "depth_trunc_m": DEPTH_TRUNC_M},
+        "open3d": o3d.__version__,
+    }
+    ref = [f.reference_c2w for f in stream.frames[:n]]
+    have = [k for k, r in enumerate(ref) if r is not None]
+    if len(have) >= 3:
+        rmse, err = ate_rmse(np.array([c2w[k] for k in have]), np.array([ref[k] for k in have]))
+        res["ate"] = {"rmse_m": rmse, "max_m": float(err.max()), "frames": len(have),
+                      "alignment": "rigid SE(3) (Horn/Umeyama, no scale) of estimated onto reference camera centres"}
+        if reference_mesh:
+            t2 = time.time()
+            rm = tsdf_mesh(o3d, [frames[k] for k in have], [ref[k] for k in have], intrinsic, K)
+            o3d.io.write_triangle_mesh(str(out / "reference_tsdf_mesh.ply"), rm)
+            res["reference_tsdf_mesh"] = {"path": str(out / "reference_tsdf_mesh.ply"), "faces": len(rm.triangles),
+                                          "seconds": time.time() - t2}
+    (out / "metrics.json").write_text(json.dumps(res, indent=2))
+    print(json.dumps(res, indent=2))
+    return res
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m trisplat.slam.open3d_baseline", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("capture", type=Path)
+    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--downscale", type=int, default=2)
+    ap.add_argument("--max-frames", type=int, default=0)
+    ap.add_argument("--no-reference-mesh", action="store_true")
+    a = ap.parse_args(argv)
+    run(a.capture, a.out, a.downscale, a.max_frames, not a.no_reference_mesh)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
