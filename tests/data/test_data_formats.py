@@ -22,7 +22,8 @@ def fox_colmap(cache):
 
 @pytest.fixture(scope="module")
 def fox_ngp(cache):
-    return load_dataset(shared_data("fox"), downscale=4, cache_dir=cache, prepare="lazy")
+    # fox holds both a transforms.json and a COLMAP model with points: auto picks COLMAP, so ask for ngp
+    return load_dataset(shared_data("fox"), downscale=4, cache_dir=cache, prepare="lazy", format="ngp")
 
 
 def project(cam, X):

@@ -18,9 +18,13 @@ def test_info_fox_colmap(capsys):
 
 
 def test_info_ngp_warns_and_bad_path_fails(capsys, tmp_path):
-    assert cli_main(["info", str(shared_data("fox"))]) == 0
+    assert cli_main(["info", str(shared_data("fox")), "--data-format", "ngp"]) == 0
     out = capsys.readouterr().out
     assert "format      ngp" in out and "warning     skipped 17 of 67 frames" in out
+    # by default fox is read as its COLMAP model (13,540 points), saying that a transforms.json is there too
+    assert cli_main(["info", str(shared_data("fox"))]) == 0
+    out = capsys.readouterr().out
+    assert "format      colmap" in out and "also holds transforms.json (ngp)" in out
     assert cli_main(["info", str(tmp_path / "nothing")]) == 1
     assert "nothing: capture folder does not exist" in capsys.readouterr().err
 

@@ -1,7 +1,9 @@
 """Values, not only syntax, are checked when a capture loads: each bad value is refused (or warned about, where the
-capture stays usable) with the file and the problem named (captures built in tmp_path, no shared data needed)."""
+capture stays usable) with the file and the problem named; a folder holding two captures is read as the one with
+points, saying what else is there (captures built in tmp_path, no shared data needed)."""
 from __future__ import annotations
 
+import json
 import math
 import struct
 
@@ -117,3 +119,37 @@ def test_a_jpeg_renamed_png_is_warned_about(blender, tmp_path):
     Image.open(p).convert("RGB").save(p, format="JPEG")  # content JPEG, name .png: the alpha is gone
     data = load(blender, tmp_path)
     assert any("train/r_2.png: a JPEG file named .png (it has no alpha channel)" in w for w in data.warnings)
+
+
+# ------------------------------------------------------------------ a folder holding two captures (fox ships both)
+
+
+def _with_transforms_json(root):
+    frames = [{"file_path": f"images/v{i}.jpg", "transform_matrix": np.linalg.inv(np.array(
+        [[1, 0, 0, -0.3 * i], [0, -1, 0, 0], [0, 0, -1, 0], [0, 0, 0, 1.0]])).tolist()} for i in range(3)]
+    (root / "transforms.json").write_text(json.dumps({"fl_x": 30.0, "fl_y": 30.0, "cx": W / 2, "cy": H / 2, "w": W,
+                                                      "h": H, "frames": frames}))
+    return root
+
+
+def test_auto_prefers_the_colmap_model_with_points_and_says_what_else_is_there(tmp_path, capsys):
+    from trisplat.cli import main
+
+    root = _with_transforms_json(_colmap(tmp_path / "both"))
+    data = load(root, tmp_path)
+    assert data.format == "colmap" and len(data.points) == 3
+    assert any("also holds transforms.json (ngp); read as colmap for its sparse points; --data-format ngp picks "
+               "the other" in w for w in data.warnings)
+    # the same option name in info and train picks the other one (info also takes --format)
+    assert load(root, tmp_path, format="ngp").format == "ngp"
+    for flag in ("--data-format", "--format"):
+        assert main(["info", str(root), flag, "ngp"]) == 0
+        assert "format      ngp" in capsys.readouterr().out
+
+
+def test_auto_keeps_transforms_json_before_a_colmap_model_without_points(tmp_path):
+    root = _with_transforms_json(_colmap(tmp_path / "both", points=np.zeros((0, 3))))
+    data = load(root, tmp_path)
+    assert data.format == "ngp"
+    assert any("also holds a COLMAP model (colmap); read as ngp; --data-format colmap picks the other" in w
+               for w in data.warnings)

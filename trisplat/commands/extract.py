@@ -35,8 +35,8 @@ class ExtractArgs:
     train_views_only: bool = False
     """Match masks against the training views only (default: any view; a name shared by a training and a test
     view, as in Blender captures, means the training view)."""
-    format: Literal["ply", "obj", "glb"] = "ply"
-    """File format of object.* and remainder.*."""
+    mesh_format: Literal["ply", "obj", "glb"] = "ply"
+    """File format of the output meshes object.* and remainder.* (a GLB is Y-up)."""
     force: bool = False
     """Replace an earlier extraction's files in the output folder."""
 
@@ -67,8 +67,8 @@ def extract_run(args: ExtractArgs) -> ExtractResult:
         raise ValueError(f"--ratio must be in (0, 1], got {args.ratio}")
     run = open_run(args.run)
     out = args.out if args.out is not None else args.run / "extract"
-    obj_path, rest_path = out / f"object.{args.format}", out / f"remainder.{args.format}"
-    mtl = [out / "object.mtl", out / "remainder.mtl"] if args.format == "obj" else []
+    obj_path, rest_path = out / f"object.{args.mesh_format}", out / f"remainder.{args.mesh_format}"
+    mtl = [out / "object.mtl", out / "remainder.mtl"] if args.mesh_format == "obj" else []
     refuse_to_overwrite([obj_path, rest_path, out / "extract.json", *mtl], args.force, "choose another --out")
     scene, normalization = run.load_model()
     data = run.load_scene_data()

@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated, Literal
 
 import numpy as np
 import tyro
@@ -20,8 +21,10 @@ class InfoConfig:
     """1, 2, 4 or 8: report resolutions and intrinsics at this downscale"""
     test_every: int = 8
     """hold out every n-th image for test when the capture has no split (0: none)"""
-    format: str = "auto"
-    """auto | colmap | blender | ngp | rgbd"""
+    data_format: Annotated[Literal["auto", "colmap", "blender", "ngp", "rgbd"],
+                           tyro.conf.arg(aliases=("--format",))] = "auto"
+    """capture format, as `trisplat train --data-format` (auto: a COLMAP model with points before a
+    transforms.json; the summary names the other formats found)"""
 
 
 def _fmt_vec(v) -> str:
@@ -70,6 +73,6 @@ def main(argv: list[str]) -> int:
     cfg = tyro.cli(InfoConfig, args=argv, prog="trisplat info", description=__doc__)
     from trisplat.data import load_dataset
 
-    data = load_dataset(cfg.path, downscale=cfg.downscale, test_every=cfg.test_every, format=cfg.format, prepare="lazy")
+    data = load_dataset(cfg.path, downscale=cfg.downscale, test_every=cfg.test_every, format=cfg.data_format, prepare="lazy")
     print(describe(data))
     return 0

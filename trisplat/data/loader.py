@@ -24,7 +24,27 @@ CACHE_VERSION = 1  # bump when the derived-image recipe changes: old cache files
 
 
 def detect_format(root: Path) -> str:
-    """'blender' | 'ngp' | 'colmap' | 'rgbd' from the files in `root` (FileNotFoundError when none fits)."""
+    """'blender' | 'ngp' | 'colmap' | 'rgbd' from the files in `root` (FileNotFoundError when none fits). A folder
+    holding several captures: the first of `detect_formats`' list (see there)."""
+    return detect_formats(root)[0]
+
+
+def colmap_point_count(model_dir: Path) -> int:
+    """Number of 3D points of a COLMAP model, from the header of points3D.bin or the lines of points3D.txt."""
+    binary = model_dir / "points3D.bin"
+    if binary.is_file():
+        with open(binary, "rb") as f:
+            head = f.read(8)
+        return int.from_bytes(head, "little") if len(head) == 8 else 0
+    text = model_dir / "points3D.txt"
+    with open(text, errors="replace") as f:
+        return sum(1 for line in f if line.strip() and not line.lstrip().startswith("#"))
+
+
+def detect_formats(root: Path) -> list[str]:
+    """Every capture format found in `root`, the one `format='auto'` uses first: Blender, instant-ngp, COLMAP,
+    RGB-D in that order, except that a COLMAP model with sparse points goes before an instant-ngp transforms.json
+    (its points give the Delaunay initialisation; fox ships both). FileNotFoundError when none fits."""
     from trisplat.data.colmap import find_model_dir
     from trisplat.data.rgbd import find_rgbd_layout
 
@@ -33,16 +53,23 @@ def detect_format(root: Path) -> str:
         raise FileNotFoundError(f"{root}: capture folder does not exist")
     if root.is_file():
         if root.suffix == ".json":
-            return "ngp"
+            return ["ngp"]
         raise FileNotFoundError(f"{root}: expected a capture folder (or a transforms.json), got a file")
+    found = []
     if (root / "transforms_train.json").is_file():
-        return "blender"
+        found.append("blender")
     if (root / "transforms.json").is_file():
-        return "ngp"
-    if find_model_dir(root) is not None:
-        return "colmap"
+        found.append("ngp")
+    model_dir = find_model_dir(root)
+    if model_dir is not None:
+        if "ngp" in found and colmap_point_count(model_dir) > 0:
+            found.insert(found.index("ngp"), "colmap")
+        else:
+            found.append("colmap")
     if (root / "rgb.txt").is_file() or find_rgbd_layout(root) is not None:
-        return "rgbd"
+        found.append("rgbd")
+    if found:
+        return found
     raise FileNotFoundError(
         f"{root}: no known capture format (looked for transforms_train.json, transforms.json, "
         f"sparse/0 or sparse/ with COLMAP cameras/images/points3D, color/ + depth/ with a trajectory)"
@@ -60,7 +87,23 @@ def colmap_root(path: Path) -> Path | None:
     return None
 
 
+FORMAT_FILES = {"blender": "transforms_train.json", "ngp": "transforms.json", "colmap": "a COLMAP model",
+                "rgbd": "an RGB-D layout"}
+
+
 def read_capture(root: Path, opts: LoadOptions) -> RawCapture:
+    raw = _read_capture(root, opts)
+    if opts.format == "auto" and root.is_dir():
+        found = detect_formats(root)
+        if len(found) > 1:  # say what else is there, and how to pick it
+            raw.warnings.append(
+                f"{root} also holds {', '.join(f'{FORMAT_FILES[f]} ({f})' for f in found[1:])}; read as {found[0]}"
+                + (" for its sparse points" if found[0] == "colmap" and "ngp" in found else "")
+                + f"; --data-format {found[1]} picks the other")
+    return raw
+
+
+def _read_capture(root: Path, opts: LoadOptions) -> RawCapture:
     fmt = detect_format(root) if opts.format == "auto" else opts.format
     if fmt == "blender":
         from trisplat.data.transforms import read_blender
