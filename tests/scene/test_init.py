@@ -175,3 +175,7 @@ def test_initial_scene_on_captures(tmp_path):
     assert report.subsampled_from == distinct and report.faces == 1000
     with pytest.raises(ValueError, match="needs points"):
         initial_scene(lego, method="delaunay")
+    # MeshSplatting's soup on a capture without points: seeded on the visual hull of the silhouettes
+    scene, report = initial_scene(lego, method="soup", random_points=300, sh_degree=0)
+    assert report.method == "soup" and "visual hull" in report.summary()
+    assert scene.num_faces == 300 and scene.num_vertices == 900  # a soup: three private vertices per face

@@ -12,7 +12,7 @@ from trisplat.train.trainer import Trainer
 # A few dozen steps: learning rates raised and pruning started late so that colours can settle first (the
 # paper's schedule assumes thousands of steps before the first prune).
 TINY = dict(steps=40, sh_degree=1, max_vertices=3000, eval_every=0.5, eval_max_views=2, log_every=1,
-            checkpoint_every_s=1e9, num_renders=2, prune_from=0.6, lr_sh_dc=0.02, lr_opacity=0.05)
+            checkpoint_every_s=1e9, num_renders=2, prune_from=0.6, lr_sh_dc=0.02, lr_opacity=0.05, output="soup")
 
 
 @pytest.fixture(scope="module")
@@ -110,7 +110,7 @@ def test_meshsplatting_switch_replaces_soup_by_connected_mesh(tiny_scene, tmp_pa
     from trisplat.mesh.stats import mesh_statistics
 
     tr = _trainer(tiny_scene, tmp_path / "ms", steps=30, connect_at=0.5, densify_until=0.45,
-                  final_max_weight_pass=False)
+                  final_max_weight_pass=False, output="surface", connect_method="restricted_delaunay")
     soup_ratio = tr.ts.num_vertices / tr.ts.num_faces  # 3.0: three private vertices per face
     result = tr.train()
     assert tr.connected and soup_ratio == 3.0
@@ -123,6 +123,46 @@ def test_meshsplatting_switch_replaces_soup_by_connected_mesh(tiny_scene, tmp_pa
     assert faces.max() < len(pos) and faces.min() >= 0
     m = json.loads((tmp_path / "ms" / layout.METRICS).read_text())
     assert m["final_prune"] is None and m["faces"] == len(faces)
+
+
+@pytest.fixture(scope="module")
+def small_scene(tmp_path_factory):
+    """The demo object seen from 16 training views (fusion needs views all around to carve the free space)."""
+    from trisplat.synth import demo_mesh, write_blender_scene
+
+    out = tmp_path_factory.mktemp("small") / "scene"
+    return write_blender_scene(out, demo_mesh(), n_train=16, n_test=2, width=48, height=48, samples_per_pixel=1,
+                               n_points=0)
+
+
+def test_surface_switch_ends_in_one_connected_surface(small_scene, tmp_path):
+    """The default path: a soup until connect_at, then one fused surface fine-tuned to the end. Would fail on a
+    soup (V/F 3, one piece per face)."""
+    from trisplat.commands.mesh_stats import read_mesh
+    from trisplat.mesh.stats import mesh_statistics
+
+    tiny_scene = small_scene
+    tr = _trainer(tiny_scene, tmp_path / "s", steps=48, connect_at=0.5, densify_until=0.45, output="surface")
+    psnr_before = tr.evaluate(0.0)
+    tr.train()
+    assert tr.connected
+    hist = [json.loads(l) for l in (tmp_path / "s" / layout.HISTORY).read_text().splitlines()]
+    switch = [h for h in hist if "switch" in h]
+    assert len(switch) == 1 and switch[0]["step"] == 24  # at half of the 48 steps, once
+    # the exported mesh as a user opens it: (nearly) one piece, welded (V/F near 0.5), no edge with more than two
+    # faces; a soup has V/F 3 and one piece per face
+    v, f = read_mesh(tmp_path / "s" / "mesh.ply")
+    st = mesh_statistics(v, f)
+    assert st.largest_component_fraction >= 0.8 and 0.45 < st.vertex_face_ratio < 0.6
+    assert st.non_manifold_edges == 0
+    m = json.loads((tmp_path / "s" / layout.METRICS).read_text())
+    assert m["connected"] and m["mesh"]["largest_component_fraction"] == st.largest_component_fraction
+    assert m["surface_pass"]["psnr_after"] >= m["surface_pass"]["psnr_before"] - 0.05
+    assert m["psnr"] > psnr_before + 1.0  # the opaque surface beats the initial soft triangles
+    # still a soup when asked
+    tr = _trainer(tiny_scene, tmp_path / "soup", steps=20, connect_at=0.5, output="soup")
+    result = tr.train()
+    assert not tr.connected and result.scene.num_vertices == 3 * result.scene.num_faces
 
 
 def test_minutes_plan_prices_supersampled_steps(tiny_scene, tmp_path):
@@ -280,7 +320,8 @@ def test_connect_switch_refuses_to_leave_zero_faces(tiny_scene, tmp_path, monkey
     # the restricted Delaunay switch (the configuration may offer other switch methods)
     method = {"connect_method": "restricted_delaunay"} if "connect_method" in {
         f.name for f in dataclasses.fields(TrainConfig)} else {}
-    tr = _trainer(tiny_scene, tmp_path / "c0", steps=10, connect_at=0.5, densify_until=0.45, **method)
+    tr = _trainer(tiny_scene, tmp_path / "c0", steps=10, connect_at=0.5, densify_until=0.45, output="surface",
+                  **method)
     with pytest.raises(RuntimeError, match="produced no faces"):
         tr.train()
     assert tr.ts.num_faces > 0  # the soup was kept, and so was the checkpoint

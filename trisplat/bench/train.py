@@ -37,6 +37,8 @@ class TrainBenchArgs:
     """Where the benchmark's run directories (and generated scenes) go; existing runs are moved aside."""
     spot_size: int = 200
     """Image size of the generated Spot views."""
+    output: str = "surface"
+    """What the runs end with: 'surface' (one connected mesh, the default) or 'soup' (independent triangles)."""
     backend: Literal["numba", "warp"] = "numba"
     """Soft renderer the runs train with (the config's backend): numba, or warp (NVIDIA Warp kernels, gpu extra; on
     the trainer's device, the CPU here: Warp's CPU device is single-threaded). Warp results go to train_warp.*"""
@@ -68,24 +70,26 @@ def spot_scene(args: TrainBenchArgs) -> Path:
 
 
 def geometry_columns(run_dir: Path, gt_mesh: Path) -> list:
-    """Chamfer (and its fraction of the GT diagonal), F-score at 1% of the diagonal, V/F, boundary and
-    non-manifold edges of the run's mesh (capture frame, like the ground truth)."""
+    """Chamfer (and its fraction of the GT diagonal), F-score at 1% of the diagonal and normal consistency of the
+    run's mesh against the true surface (capture frame, like the ground truth)."""
     from trisplat.eval.geometry import compare_surfaces, load_surface
+
+    g = compare_surfaces(load_surface(run_dir / "mesh.ply"), load_surface(gt_mesh))
+    (run_dir / "geometry.json").write_text(json.dumps({"geometry": g.to_dict()}, indent=2))
+    return [g.chamfer, g.chamfer_over_diagonal, g.fscore, g.normal_consistency]
+
+
+def surface_columns(run_dir: Path) -> list:
+    """What a user opening mesh.ply sees: V/F, pieces, the largest piece's share of the faces, boundary and
+    non-manifold edges, self-intersecting edges, mean valence (trisplat mesh-stats)."""
+    from trisplat.commands.mesh_stats import read_mesh
     from trisplat.mesh.stats import mesh_statistics
 
-    pred = load_surface(run_dir / "mesh.ply")
-    g = compare_surfaces(pred, load_surface(gt_mesh))
-    s = mesh_statistics(pred.vertices, pred.faces, check_self_intersections=False)
-    (run_dir / "geometry.json").write_text(json.dumps({"geometry": g.to_dict(), "mesh": s.to_dict()}, indent=2))
-    return [
-        g.chamfer,
-        g.chamfer_over_diagonal,
-        g.fscore,
-        s.vertex_face_ratio,
-        s.boundary_edges,
-        s.non_manifold_edges,
-        s.non_manifold_edge_fraction,
-    ]
+    v, f = read_mesh(run_dir / "mesh.ply")
+    s = mesh_statistics(v, f)
+    (run_dir / "mesh_stats.json").write_text(json.dumps(s.to_dict(), indent=2))
+    return [s.vertex_face_ratio, s.connected_components, 100 * s.largest_component_fraction, s.boundary_edges,
+            s.non_manifold_edges, s.self_intersecting_edges, s.valence_mean]
 
 
 def main(argv: list[str]) -> int:
@@ -110,9 +114,10 @@ def main(argv: list[str]) -> int:
         "PSNR hard 1spp",
         "min opacity",
         "test PSNR @25/50/75% time",
+        "V/F", "pieces", "largest %", "boundary edges", "non-manifold edges", "self-int. edges", "valence",
     ]
     if geo:
-        cols += ["Chamfer", "Chamfer/diag", "F@1%", "V/F", "boundary edges", "non-manifold edges", "non-manifold frac"]
+        cols += ["Chamfer", "Chamfer/diag", "F@1%", "normal consist."]
     table = BenchTable("train" if args.backend == "numba" else f"train_{args.backend}", cols)
     for name in args.scenes:
         if name not in SCENES:
@@ -123,9 +128,10 @@ def main(argv: list[str]) -> int:
             raise FileNotFoundError(f"{data}: benchmark data missing (pass --data-root)")
         for preset in args.presets:
             tag = "" if args.backend == "numba" else f"_{args.backend}"
+            tag += "" if args.output == "surface" else f"_{args.output}"
             run_dir = args.runs / f"{name}_{preset}_{args.minutes:g}min{tag}"
             result = run_training(make_train_args(data, run_dir, preset, force=True, minutes=args.minutes,
-                                                  backend=args.backend, **opts))
+                                                  backend=args.backend, output=args.output, **opts))
             m = result.metrics
             hist = open_run(run_dir).history()
             row = [
@@ -144,9 +150,10 @@ def main(argv: list[str]) -> int:
                 m.get("psnr_1spp", m.get("psnr") if m.get("supersample", 1) == 1 else None),
                 m.get("min_vertex_opacity"),
                 " ".join(_psnr_at_fractions(hist)),
+                *surface_columns(run_dir),
             ]
             if geo:
-                row += geometry_columns(run_dir, data / "gt_mesh.ply") if folder is None else [None] * 7
+                row += geometry_columns(run_dir, data / "gt_mesh.ply") if folder is None else [None] * 4
             table.add(*row)
             print(json.dumps(m, indent=1))
     table.notes.append(

@@ -29,6 +29,8 @@ class MeshStats:
     non_manifold_edges: int
     non_manifold_edge_fraction: float  # non_manifold_edges / num_edges
     connected_components: int
+    largest_component_faces: int  # faces of the largest vertex-connected piece
+    largest_component_fraction: float  # ... as a share of all faces (1.0 = one piece)
     watertight: bool  # every edge has exactly two faces
     consistently_oriented: bool  # every two-face edge is traversed once in each direction
     euler_characteristic: int  # referenced vertices - edges + faces
@@ -82,7 +84,8 @@ def mesh_statistics(vertices: np.ndarray, faces: np.ndarray, check_self_intersec
     two = table.edge_face_count == 2
     consistent = bool(np.all(fwd_count[two] == 1))
 
-    n_comp, _ = face_components(f, V)
+    n_comp, label = face_components(f, V)
+    largest = int(np.bincount(label).max()) if F else 0
     chi = n_used - E + F
     genus = (2 * n_comp - chi) // 2 if (watertight and consistent) else None
     degenerate = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2])
@@ -105,6 +108,8 @@ def mesh_statistics(vertices: np.ndarray, faces: np.ndarray, check_self_intersec
         non_manifold_edges=non_manifold,
         non_manifold_edge_fraction=non_manifold / E if E else 0.0,
         connected_components=n_comp,
+        largest_component_faces=largest,
+        largest_component_fraction=largest / F if F else 0.0,
         watertight=bool(watertight),
         consistently_oriented=consistent,
         euler_characteristic=int(chi),

@@ -335,12 +335,24 @@ def initial_scene(
     if method not in ("auto", "delaunay", "soup", "hull", "random"):
         raise ValueError(f"unknown initialisation method {method!r} (auto, delaunay, soup, hull, random)")
     has_points = data.points is not None and len(data.points) > 0
-    if method in ("delaunay", "soup") and not has_points:
-        raise ValueError(f"initialisation {method!r} needs points, but this {data.format} capture has none")
+    if method == "delaunay" and not has_points:
+        raise ValueError(f"initialisation 'delaunay' needs points, but this {data.format} capture has none "
+                         "(use --init soup, hull or random)")
+    has_alpha = len(data.train_indices) > 0 and data.load_alpha(int(data.train_indices[0])) is not None
+    if method == "soup" and not has_points:
+        # MeshSplatting's soup on any capture: one triangle per point of the visual hull's surface (alpha), else
+        # per random point in the box; both initialisations are soups already
+        scene, report = (init_hull(data, random_points, seed, opacity, sh_degree, random_size_factor) if has_alpha
+                         else init_random(*_content_box(data), random_points, seed, opacity, sh_degree,
+                                          random_size_factor))
+        report.notes.append(f"soup: this {data.format} capture has no sparse points, so the soup was seeded on "
+                            f"{'the visual hull' if has_alpha else 'random points in the scene box'}")
+        report.method = "soup"
+        return scene, report
     if method == "auto":
         if has_points:
             method = "delaunay"
-        elif len(data.train_indices) and data.load_alpha(int(data.train_indices[0])) is not None:
+        elif has_alpha:
             method = "hull"
         else:
             method = "random"

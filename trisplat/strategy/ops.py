@@ -150,6 +150,26 @@ def set_faces(ts: TrainableScene, faces: torch.Tensor) -> None:
     ts.reset_face_stats()
 
 
+def replace_scene(ts: TrainableScene, scene: TriangleScene) -> None:
+    """Replace every vertex and face row by those of `scene` (e.g. the connected surface of the stage-2 switch):
+    new parameters with zero Adam moments (learning rates kept), the scene's faces and opacity floor, face
+    statistics restarting at zero."""
+    sh = scene.sh.detach()
+    values = {"positions": scene.positions, "sh_dc": sh[:, :1], "sh_rest": sh[:, 1:],
+              "opacity_logit": scene.opacity_logit}
+    for name in VERTEX_PARAMS:
+        old = ts.params[name]
+        new = torch.nn.Parameter(values[name].detach().to(old).contiguous().clone())
+        for group in ts.optimizer.param_groups:
+            if group["params"][0] is old:
+                group["params"][0] = new
+        ts.optimizer.state.pop(old, None)
+        ts.params[name] = new
+    ts.faces = scene.faces.to(torch.int64).to(ts.faces.device).clone()
+    ts.opacity_floor = float(scene.opacity_floor)
+    ts.reset_face_stats()
+
+
 def remove_orphan_vertices(ts: TrainableScene) -> int:
     """Drop vertices no face references; returns how many were removed."""
     used = torch.zeros(ts.num_vertices, dtype=torch.bool, device=ts.faces.device)

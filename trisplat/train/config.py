@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import Literal
 
 PAPER_STEPS = 30_000  # the Triangle Splatting+ schedule is specified for 30k iterations; we scale it by progress
 
@@ -95,8 +96,24 @@ class TrainConfig:
     supersample_4x_from: float = 1.01
     """Render at 4x from this progress (>1 disables; 4x is costly on CPU)."""
     # --- MeshSplatting (soup -> connected mesh)
+    output: Literal["surface", "soup"] = "surface"
+    """'surface': the soup becomes ONE connected surface at `connect_at` and training fine-tunes it (the mesh a
+    game or physics engine wants); 'soup': independent triangles to the end (no switch; connect_at is ignored)."""
     connect_at: float | None = None
-    """Progress at which the soup is replaced by its restricted Delaunay mesh (MeshSplatting stage 2); None = never."""
+    """Progress at which the soup is replaced by a connected mesh (stage 2); None = never (a soup to the end)."""
+    connect_method: Literal["fusion", "restricted_delaunay"] = "fusion"
+    """'fusion': depth of the soup's renders fused into a TSDF, marching cubes, decimated (trisplat.train.switch);
+    'restricted_delaunay': MeshSplatting's restricted Delaunay of the soup's vertices (thin soups only)."""
+    surface_resolution: int = 256
+    """Fusion grid: voxels along the longest side of the content box (fusion switch)."""
+    surface_face_ratio: float = 2.0
+    """Face budget of the surface: this many times the soup's faces at the switch (fusion switch)."""
+    surface_max_faces: int = 400_000
+    surface_opacity: float = 0.9
+    """Vertex opacity the fused surface starts with (fusion switch)."""
+    surface_sigma: float | None = 0.1
+    """After the switch the window sharpness is at most this, decaying geometrically to sigma_end (None: the
+    linear schedule throughout). A soft window leaves a connected mesh's shared edges see-through."""
     # --- renderer
     near: float = 0.01
     tile_size: int = 16
@@ -121,6 +138,17 @@ class TrainConfig:
         from trisplat.render.inputs import check_supersample
 
         check_supersample(self.eval_supersample, "eval_supersample")  # now, not when scoring after the training
+        if self.output not in ("surface", "soup"):
+            raise ValueError(f"output must be 'surface' or 'soup', got {self.output!r}")
+        if self.connect_method not in ("fusion", "restricted_delaunay"):
+            raise ValueError(f"connect_method must be 'fusion' or 'restricted_delaunay', got {self.connect_method!r}")
+        if self.connect_at is not None and not 0.0 <= self.connect_at <= 1.0:
+            raise ValueError(f"connect_at must be a progress in [0, 1] or None, got {self.connect_at}")
+
+    @property
+    def switch_at(self) -> float | None:
+        """Progress of the stage-2 switch, or None when the run stays a soup."""
+        return self.connect_at if self.output == "surface" else None
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -137,6 +165,10 @@ class TrainConfig:
         return TrainConfig(**d)
 
 
+# Progress at which the soup becomes one connected surface (trisplat.train.switch) in the fast and default presets:
+# the end of densification, so the surface gets the whole hardening phase to fine-tune.
+SURFACE_SWITCH_AT = 0.5
+
 PRESETS: dict[str, dict] = {
     # Sized for a CPU (measured on 2 cores, docs/benchmarks.md). The TS+ densification window (until 13k of 30k
     # steps) followed by ~12k steps of pruning left lego and fox at 9-11k faces; densifying until 70% of the run with
@@ -145,7 +177,7 @@ PRESETS: dict[str, dict] = {
     # points, scored lower in short trials. The 2x anti-aliasing phase (4x the pixels per step) is left to `full`.
     # A few minutes on a 2-core CPU: small images, modest triangle budget, SH degree 1.
     "fast": dict(steps=1_500, sh_degree=1, max_vertices=60_000, init_random_points=4_000, init_max_points=3_000,
-                 supersample_2x_from=1.01, eval_every=0.5, eval_max_views=4),
+                 supersample_2x_from=1.01, eval_every=0.5, eval_max_views=4, connect_at=SURFACE_SWITCH_AT),
     # A good CPU run (use with --minutes N): the fast preset's scene budget, full SH, a longer schedule.
     # Position learning rate decaying to 1/1000 (not the paper's 1/100) and densification until half the run (was
     # 70%): in 10-minute lego trials (docs/benchmarks.md) Adam's late position steps were noise that the hardening
@@ -153,12 +185,13 @@ PRESETS: dict[str, dict] = {
     # cheaper steps for the hardening (+0.5 dB). 30-minute bench, one sample per pixel: lego 25.33 -> 27.37 dB, but
     # fox 24.24 -> 23.13 dB (35k instead of 69k faces at the end; a scene-dependent face budget is not built yet).
     "default": dict(steps=7_000, sh_degree=3, max_vertices=150_000, densify_until=0.5, lr_position_final_ratio=1e-3,
-                    init_random_points=4_000, init_max_points=3_000, supersample_2x_from=1.01),
+                    init_random_points=4_000, init_max_points=3_000, supersample_2x_from=1.01,
+                    connect_at=SURFACE_SWITCH_AT),
     # The paper's schedule.
     "full": dict(steps=30_000, sh_degree=3, max_vertices=2_000_000, supersample_4x_from=0.95),
     # MeshSplatting: soup initialisation, stage 2 restricted Delaunay at ~11k/30k, fine-tuning after.
     # No pruning after the switch and no final max-weight pass: both would open holes in the connected surface.
-    "meshsplatting": dict(steps=7_000, init="soup", connect_at=11_000 / PAPER_STEPS,
+    "meshsplatting": dict(steps=7_000, init="soup", connect_at=11_000 / PAPER_STEPS, connect_method="restricted_delaunay",
                           densify_until=10_000 / PAPER_STEPS, max_vertices=300_000, final_max_weight_pass=False),
 }
 

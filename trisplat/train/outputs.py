@@ -94,6 +94,19 @@ def write_outputs(trainer, pruned) -> dict:
         "steps": trainer.step, "wall_s": trainer.wall_s,
         "final_prune": None if pruned is None else {"faces_removed": pruned.faces_removed,
                                                     "vertices_removed": pruned.vertices_removed},
+        "output": cfg.output, "connected": bool(trainer.connected),
+        "surface_pass": getattr(trainer, "surface_pass", None),
+        "mesh": _mesh_summary(scene),
     })
     atomic_write_text(run_dir / layout.METRICS, json.dumps(metrics, indent=2))
     return metrics
+
+
+def _mesh_summary(scene) -> dict:
+    """`trisplat mesh-stats` of the mesh as exported (per-vertex rows as stored; a soup's corners are not welded)."""
+    from trisplat.mesh.stats import mesh_statistics
+
+    st = mesh_statistics(scene.positions.numpy(), scene.faces.numpy()).to_dict()
+    keep = ("vertex_face_ratio", "connected_components", "largest_component_fraction", "boundary_edges",
+            "non_manifold_edges", "self_intersecting_edges", "valence_mean", "watertight", "consistently_oriented")
+    return {k: st[k] for k in keep}

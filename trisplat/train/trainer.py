@@ -76,6 +76,7 @@ class Trainer:
         self._failed_step = 0  # the step of the last NaN/Inf rollback
         self.wall_s = 0.0
         self.connected = False
+        self.surface_pass: dict | None = None
         self._last_prune = self._last_densify = -(10**9)
         self.init_report = None  # what the initialisation did (when this trainer made the initial triangles)
         self.run_dir.mkdir(parents=True, exist_ok=True)
@@ -233,7 +234,7 @@ class Trainer:
         n_train = len(self.data.train_indices)
         if self.step % n_train == 0:
             ts.roll_face_stats()
-        if cfg.connect_at is not None and not self.connected and p >= cfg.connect_at:
+        if cfg.switch_at is not None and not self.connected and p >= cfg.switch_at:
             self._connect()
         seen_all_views = self.step >= n_train
         # pruning judges faces by statistics over every view, so two prunes are at least one epoch apart; so are two
@@ -252,6 +253,10 @@ class Trainer:
             self._last_densify = self.step
 
     def _connect(self) -> None:
+        """The stage-2 switch: the soup becomes one connected surface (cfg.connect_method), then fine-tuning."""
+        if self.cfg.connect_method == "fusion":
+            self._connect_fusion()
+            return
         from trisplat.mesh.connect import ConnectConfig, connect_scene
 
         # layered soups make the restricted Delaunay keep several faces per edge: keep the two best-shaped ones
@@ -264,6 +269,39 @@ class Trainer:
         ops.set_faces(self.ts, connected.faces)
         ops.remove_orphan_vertices(self.ts)
         self.connected = True
+        self._log({"step": self.step, "switch": {"method": "restricted_delaunay", "faces": self.ts.num_faces,
+                                                 "vertices": self.ts.num_vertices}})
+
+    @torch.no_grad()
+    def _connect_fusion(self) -> None:
+        from trisplat.train.switch import SurfaceConfig, soup_to_surface
+
+        cfg, p = self.cfg, self.clock.p(self.step)
+        train = [int(i) for i in self.data.train_indices]
+        # voxels finer than about half a pixel of the training images add nothing but time
+        side = max(max(self.data.cameras[i].width, self.data.cameras[i].height) for i in train)
+        scfg = SurfaceConfig(resolution=int(min(cfg.surface_resolution, max(2 * side, 32))),
+                             face_ratio=cfg.surface_face_ratio,
+                             max_faces=cfg.surface_max_faces, opacity=cfg.surface_opacity)
+        say = (lambda m: print(f"switch: {m}", file=sys.stderr, flush=True)) if self.show_progress else None
+        if say:
+            say(f"step {self.step}: fusing the soup's depth in {len(train)} training views into one surface")
+        try:
+            # an object capture (alpha masks) has its content box; a real scene's walls and floor lie beyond the
+            # sparse points' box, so there the soup's own extent is fused
+            masked = self.data.load_alpha(train[0]) is not None
+            surface, report = soup_to_surface(
+                self.ts.to_scene(), [self.data.cameras[i] for i in train], lambda n: self.render(train[n], p),
+                self.data.bounds if masked else None, scfg, say, images=lambda n: self.data.load_image(train[n]))
+        except ValueError as exc:
+            raise RuntimeError(
+                f"the switch to a connected surface at step {self.step} failed ({exc}); the last good checkpoint is "
+                f"{self.run_dir / layout.CHECKPOINT}. Try a later --connect-at, or --output soup.") from exc
+        ops.replace_scene(self.ts, surface)
+        self.connected = True
+        self._log({"step": self.step, "wall_s": round(self.wall_s, 3), "switch": report.to_dict()})
+        if say:
+            say(report.summary())
 
     def _rollback(self) -> None:
         """Back to the last good state with half the learning rates. The scale keeps halving over repeated
@@ -397,6 +435,32 @@ class Trainer:
             mw = torch.maximum(mw, self.render(int(i), 1.0).max_weight)
         return mw
 
+    def _final_surface_pass(self) -> dict:
+        """Clean the connected surface (trisplat.strategy.surface) and measure its cost: hard-render PSNR on the
+        first test views before and after (only when faces were removed; orienting does not change a render)."""
+        from trisplat.strategy.surface import final_surface_pass
+
+        views = list(self.data.test_indices)[:8]
+        before = self.evaluate_hard(views)
+        res = final_surface_pass(self.ts)
+        out = {"faces_removed": res.faces_removed, "pieces_removed": res.pieces_removed,
+               "faces_flipped": res.faces_flipped, "views": len(views), "psnr_before": before,
+               "psnr_after": self.evaluate_hard(views) if res.faces_removed else before}
+        self._log({"step": self.step, "surface_pass": out})
+        return out
+
+    @torch.no_grad()
+    def evaluate_hard(self, views) -> float | None:
+        """Mean PSNR of the opaque mesh (z-buffer, eval_supersample) on these views; None without views."""
+        from trisplat.eval.views import render_view
+
+        if not len(views):
+            return None
+        scene = self.ts.to_scene()
+        return float(np.mean([psnr_value(torch.as_tensor(render_view(
+            scene, self.data.cameras[int(i)], "hard", self.cfg.background, supersample=self.cfg.eval_supersample)),
+            self.gt(int(i))) for i in views]))
+
     def finish(self) -> dict:
         """Final pruning pass, model and mesh files, test renders and metrics; marks the run finished."""
         from trisplat.train.outputs import write_outputs
@@ -405,6 +469,8 @@ class Trainer:
         pruned = None
         if self.cfg.final_max_weight_pass and not self.connected:
             pruned = final_max_weight_prune(self.ts, self.final_max_weight(), self.cfg.final_max_weight)
+        if self.connected:
+            self.surface_pass = self._final_surface_pass()
         metrics = write_outputs(self, pruned)
         self.wall_s += time.perf_counter() - t0
         self._write_state(finished=True)

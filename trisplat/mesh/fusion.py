@@ -1,0 +1,159 @@
+"""Depth fusion: a truncated signed distance field (TSDF) from per-view depth maps, and its zero surface.
+
+Used by the stage-2 switch (`trisplat.train.switch`): the trained soup is rendered from every training camera,
+each pixel's surface depth is fused here, and marching cubes turns the field into ONE welded, consistently oriented
+surface, whatever the soup looked like (layered, overlapping, thin): the field averages the layers away.
+
+Conventions (docs/conventions.md): a grid `[X,Y,Z]` over a box in the normalised frame, indexed along x, y, z,
+cubic voxels, voxel centres at `origin + (ijk + 0.5) * voxel`. A depth map is view depth (camera z, scene units)
+per pixel: `inf` where the pixel sees nothing (its ray is free up to infinity: background), `nan` where unknown
+(skipped). Field values are signed distances in units of the truncation distance, clipped to [-1, 1]: positive
+in front of the observed surface (free), negative behind it. A voxel that lies inside some view but behind every
+view's surface (occluded) is solid (-1), as in space carving, so closed objects give closed surfaces; a voxel
+inside no view is free (+1): nothing was seen there. Occluded views also cast a weak vote for solid
+(OCCLUSION_WEIGHT): without it, one ray with a wrong depth (a gap between soup triangles, a grazing face) would
+carve the inside of an object that every other view sees from outside.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numba as nb
+import numpy as np
+
+OCCLUSION_WEIGHT = 0.1  # an occluded view's vote for solid, against 1 for a view that sees the voxel (see fuse_depths)
+MAX_VOXELS = 64_000_000  # a grid larger than this is refused (memory: 8 bytes per voxel, plus marching cubes)
+
+
+@dataclass(frozen=True)
+class FusionGrid:
+    """sdf: float32 [X,Y,Z] in truncation units (+1 free, -1 solid/unknown); weight: float32 [X,Y,Z] number of
+    views that observed each voxel within the truncation band or in free space; origin [3]; voxel edge length;
+    truncation: the truncation distance (scene units)."""
+
+    sdf: np.ndarray
+    weight: np.ndarray
+    origin: np.ndarray
+    voxel: float
+    truncation: float
+
+
+@nb.njit(parallel=True, cache=True, fastmath=True)
+def _fuse_kernel(dims, origin, voxel, w2c, K, sizes, depths, trunc, near, occ_w, sdf_sum, w_sum, in_view):
+    X, Y, Z = dims[0], dims[1], dims[2]
+    n_views = w2c.shape[0]
+    for i in nb.prange(X):
+        x = origin[0] + (i + 0.5) * voxel
+        for j in range(Y):
+            y = origin[1] + (j + 0.5) * voxel
+            for k in range(Z):
+                z = origin[2] + (k + 0.5) * voxel
+                s_acc = 0.0
+                w_acc = 0.0
+                n_in = 0
+                for v in range(n_views):
+                    M = w2c[v]
+                    cz = M[2, 0] * x + M[2, 1] * y + M[2, 2] * z + M[2, 3]
+                    if cz <= near:
+                        continue
+                    cx = M[0, 0] * x + M[0, 1] * y + M[0, 2] * z + M[0, 3]
+                    cy = M[1, 0] * x + M[1, 1] * y + M[1, 2] * z + M[1, 3]
+                    Kv = K[v]
+                    u = (Kv[0, 0] * cx + Kv[0, 1] * cy) / cz + Kv[0, 2]
+                    w = Kv[1, 1] * cy / cz + Kv[1, 2]
+                    if u < 0.0 or w < 0.0:
+                        continue
+                    col = int(u)
+                    row = int(w)
+                    if col >= sizes[v, 0] or row >= sizes[v, 1]:
+                        continue
+                    n_in += 1
+                    d = depths[v, row, col]
+                    if np.isnan(d):
+                        continue
+                    if np.isinf(d):
+                        s = 1.0
+                    else:
+                        s = (d - cz) / trunc
+                        if s < -1.0:
+                            # behind the surface this view saw: occluded, a weak vote for solid
+                            s_acc -= occ_w
+                            continue
+                        if s > 1.0:
+                            s = 1.0
+                    s_acc += s
+                    w_acc += 1.0
+                sdf_sum[i, j, k] = s_acc
+                w_sum[i, j, k] = w_acc
+                in_view[i, j, k] = n_in > 0
+
+
+def grid_shape(bounds: np.ndarray, resolution: int) -> tuple[tuple[int, int, int], float]:
+    """Voxel counts along x, y, z and the voxel edge for `resolution` voxels along the box's longest side."""
+    lo, hi = np.asarray(bounds, dtype=np.float64)
+    if not (np.isfinite(lo).all() and np.isfinite(hi).all() and (hi > lo).all()):
+        raise ValueError(f"depth fusion needs a finite box with max > min, got {lo} .. {hi}")
+    if int(resolution) < 8:
+        raise ValueError(f"depth fusion needs a resolution of at least 8 voxels, got {resolution}")
+    voxel = float((hi - lo).max()) / int(resolution)
+    dims = tuple(int(d) for d in np.maximum(np.ceil((hi - lo) / voxel), 1).astype(int))
+    return dims, voxel
+
+
+def fuse_depths(cameras, depths, bounds, resolution: int = 256, truncation_voxels: float = 3.0,
+                near: float = 1e-3, occlusion_weight: float = OCCLUSION_WEIGHT) -> FusionGrid:
+    """TSDF of the depth maps inside `bounds` (float [2,3], normalised frame).
+
+    cameras: objects with world_to_camera [4,4], K [3,3], width, height (trisplat.cameras.Camera); depths: one
+    float [H,W] view-depth map per camera (inf = nothing seen, nan = unknown). Each voxel averages, over the views
+    that see it in front of or within `truncation_voxels` voxels behind their surface, the clipped signed distance
+    (depth - voxel depth) / truncation; views where it lies farther behind the surface add -`occlusion_weight` to
+    the sum (not to the weight), views where it lies outside the image or behind the camera say nothing. Voxels inside some view but behind every view's surface are solid (-1); voxels in no
+    view at all are free (+1: nothing was seen there).
+    """
+    if len(cameras) != len(depths):
+        raise ValueError(f"{len(cameras)} cameras but {len(depths)} depth maps")
+    if len(cameras) == 0:
+        raise ValueError("depth fusion needs at least one view")
+    dims, voxel = grid_shape(bounds, resolution)
+    if int(np.prod(dims)) > MAX_VOXELS:
+        raise ValueError(f"depth fusion grid {dims} has more than {MAX_VOXELS} voxels: lower the resolution")
+    Hm = max(int(c.height) for c in cameras)
+    Wm = max(int(c.width) for c in cameras)
+    stack = np.full((len(cameras), Hm, Wm), np.nan, dtype=np.float32)
+    sizes = np.zeros((len(cameras), 2), np.int64)
+    for n, (cam, d) in enumerate(zip(cameras, depths)):
+        d = np.asarray(d, dtype=np.float32)
+        if d.shape != (cam.height, cam.width):
+            raise ValueError(f"depth map {n} is {d.shape[1]}x{d.shape[0]}, its camera is {cam.width}x{cam.height}")
+        stack[n, : cam.height, : cam.width] = d
+        sizes[n] = (cam.width, cam.height)
+    w2c = np.stack([np.asarray(c.world_to_camera, dtype=np.float64) for c in cameras])
+    K = np.stack([np.asarray(c.K, dtype=np.float64) for c in cameras])
+    origin = np.asarray(bounds, dtype=np.float64)[0]
+    trunc = float(truncation_voxels) * voxel
+    sdf_sum = np.empty(dims, np.float32)
+    w_sum = np.empty(dims, np.float32)
+    in_view = np.empty(dims, np.bool_)
+    _fuse_kernel(np.asarray(dims, np.int64), origin, voxel, w2c, K, sizes, stack, trunc, float(near),
+                 float(occlusion_weight), sdf_sum, w_sum, in_view)
+    # observed: the mean; inside some view but always behind its surface: occluded, solid; in no view: free
+    sdf = np.where(w_sum > 0, np.clip(sdf_sum / np.maximum(w_sum, 1e-12), -1.0, 1.0),
+                   np.where(in_view, -1.0, 1.0)).astype(np.float32)
+    return FusionGrid(sdf, w_sum, origin, voxel, trunc)
+
+
+def extract_surface(grid: FusionGrid) -> tuple[np.ndarray, np.ndarray]:
+    """Zero level set of the field (marching cubes, scikit-image) as vertices float64 [V,3] (normalised frame) and
+    faces int64 [F,3], welded, counter-clockwise seen from the free side (outward). The grid is padded with free
+    space, so a solid region touching the box is closed along the box's faces. Empty when nothing is solid."""
+    from skimage.measure import marching_cubes
+
+    vol = np.pad(grid.sdf, 1, constant_values=1.0)
+    if not (vol < 0).any():
+        return np.zeros((0, 3)), np.zeros((0, 3), np.int64)
+    verts, faces, _, _ = marching_cubes(vol, level=0.0, allow_degenerate=False)
+    verts = grid.origin + (verts - 1.0 + 0.5) * grid.voxel  # padding, then voxel centres
+    # with gradient_direction='descent' scikit-image winds each triangle counter-clockwise seen from the side where
+    # the field is larger (free space): outward, as docs/conventions.md wants (tests/mesh/test_fusion.py checks it)
+    return verts.astype(np.float64), np.ascontiguousarray(faces, dtype=np.int64)

@@ -1,0 +1,269 @@
+"""The stage-2 switch: a trained triangle soup becomes ONE connected surface that keeps the soup's appearance.
+
+MeshSplatting replaces the soup's faces by a restricted Delaunay triangulation of its vertices; on the thick,
+layered soups a CPU budget trains, that keeps several faces per edge (docs/benchmarks_mesh.md: 44% non-manifold
+edges). This switch instead renders the soup from every training camera, takes each pixel's surface depth (the face
+where the accumulated blending weight passes 0.5, as the renderer reports it), fuses the depth maps into a truncated
+signed distance field (`trisplat.mesh.fusion`: unobserved space solid, so objects close), extracts its zero surface
+with marching cubes (welded, manifold, outward), drops small pieces, decimates to the face budget (quadric error,
+fast-simplification) and gives every new vertex the colour (all SH bands) and opacity of the soup around it.
+Training then fine-tunes this mesh (the trainer keeps its connectivity: no soup-style pruning or densification).
+"""
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+import torch
+
+from trisplat.mesh.cleanup import face_components
+from trisplat.mesh.fusion import extract_surface, fuse_depths, grid_shape
+from trisplat.scene.model import TriangleScene
+
+BOX_PERCENTILE = 1.0  # without a content box: the box of the soup's vertices between these percentiles (per axis)
+BOX_MARGIN = 0.05  # ... grown by this fraction of its size on every side
+
+
+@dataclass(frozen=True)
+class SurfaceConfig:
+    """Settings of the switch. Lengths in voxels of the fusion grid unless said otherwise."""
+
+    resolution: int = 256
+    """voxels along the longest side of the fused box."""
+    truncation_voxels: float = 3.0
+    """TSDF truncation distance."""
+    face_ratio: float = 2.0
+    """face budget of the surface: this many times the soup's face count (decimated down to it, never up)."""
+    max_faces: int = 400_000
+    """upper bound of the face budget (count)."""
+    min_component_fraction: float = 0.02
+    """pieces with fewer faces than this fraction of the largest piece are dropped (floaters)."""
+    opacity: float = 0.9
+    """vertex opacity the surface starts with (the trainer's opacity floor keeps rising from here)."""
+    neighbours: int = 8
+    """soup vertices whose attributes (SH, opacity) each surface vertex averages, weighted by opacity / distance."""
+    fill_holes_px: int = 2
+    """empty pixels closer than this (pixels) to covered ones on two sides (a morphological closing) take the depth
+    of the nearest covered pixel: a soup has gaps between its triangles, and one ray through a gap would carve the
+    inside of the object away (free space wins where nothing else is observed)."""
+
+
+@dataclass
+class SwitchReport:
+    """What the switch did (counts, seconds)."""
+
+    soup_faces: int = 0
+    soup_vertices: int = 0
+    views: int = 0
+    grid: tuple[int, int, int] = (0, 0, 0)
+    voxel: float = 0.0
+    marching_cubes_faces: int = 0
+    pieces: int = 0
+    pieces_dropped: int = 0
+    faces: int = 0
+    vertices: int = 0
+    render_s: float = 0.0
+    fuse_s: float = 0.0
+    mesh_s: float = 0.0
+    notes: list[str] = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    def summary(self) -> str:
+        return (f"soup {self.soup_faces} faces -> surface {self.faces} faces / {self.vertices} vertices "
+                f"(V/F {self.vertices / max(self.faces, 1):.2f}; fused {self.views} views on a "
+                f"{'x'.join(map(str, self.grid))} grid; {self.pieces_dropped} of {self.pieces} pieces dropped; "
+                f"{self.render_s + self.fuse_s + self.mesh_s:.1f} s)")
+
+
+def surface_depth(face_id: np.ndarray, positions: np.ndarray, faces: np.ndarray, world_to_camera: np.ndarray,
+                  K: np.ndarray) -> np.ndarray:
+    """View depth [H,W] where each pixel centre's ray meets the plane of its face `face_id` [H,W] (the face at
+    which the accumulated blending weight passes 0.5, the "median depth" of 2DGS-style extraction); inf where
+    face_id < 0 (nothing there: free space). Grazing planes fall back to the face's mean depth."""
+    H, W = face_id.shape
+    depth = np.full((H, W), np.inf, dtype=np.float32)
+    rows, cols = np.nonzero(face_id >= 0)
+    if len(rows) == 0:
+        return depth
+    f = face_id[rows, cols]
+    R, t = world_to_camera[:3, :3], world_to_camera[:3, 3]
+    tri = positions[faces[f]] @ R.T + t  # [n,3,3] camera frame
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    Kinv = np.linalg.inv(K)
+    ray = np.stack([cols + 0.5, rows + 0.5, np.ones(len(rows))], 1) @ Kinv.T  # z = 1
+    den = np.einsum("ij,ij->i", normal, ray)
+    num = np.einsum("ij,ij->i", normal, tri[:, 0])
+    mean_z = tri[:, :, 2].mean(1)
+    ok = np.abs(den) > 1e-6 * np.linalg.norm(normal, axis=1) * np.linalg.norm(ray, axis=1)
+    z = np.where(ok, num / np.where(ok, den, 1.0), mean_z)
+    z = np.where(np.isfinite(z) & (z > 0), z, mean_z)
+    # a plane met far outside its triangle (grazing): clamp to the triangle's depth range
+    z = np.clip(z, tri[:, :, 2].min(1), tri[:, :, 2].max(1))
+    depth[rows, cols] = z
+    return depth
+
+
+def fill_holes(depth: np.ndarray, px: int) -> np.ndarray:
+    """`depth` [H,W] with its small empty (inf) gaps filled: pixels inside the morphological closing (`px`
+    iterations) of the covered area take the depth of the nearest covered pixel."""
+    from scipy import ndimage
+
+    covered = np.isfinite(depth)
+    if px <= 0 or covered.all() or not covered.any():
+        return depth
+    closed = ndimage.binary_closing(covered, iterations=int(px), border_value=0)
+    gaps = closed & ~covered
+    if not gaps.any():
+        return depth
+    _, (ri, ci) = ndimage.distance_transform_edt(~covered, return_indices=True)
+    out = depth.copy()
+    out[gaps] = depth[ri[gaps], ci[gaps]]
+    return out
+
+
+def fusion_box(positions: np.ndarray, bounds: np.ndarray | None) -> np.ndarray:
+    """The box to fuse in: the capture's content box when it has one, else the soup's robust extent."""
+    if bounds is not None:
+        lo, hi = np.asarray(bounds, dtype=np.float64)
+    else:
+        lo = np.percentile(positions, BOX_PERCENTILE, axis=0)
+        hi = np.percentile(positions, 100 - BOX_PERCENTILE, axis=0)
+    size = np.maximum(hi - lo, 1e-6)
+    return np.stack([lo - BOX_MARGIN * size, hi + BOX_MARGIN * size])
+
+
+def transfer_attributes(scene: TriangleScene, points: np.ndarray, neighbours: int = 8
+                        ) -> tuple[torch.Tensor, torch.Tensor]:
+    """SH [P,K,3] and realised opacity [P] for `points` [P,3]: the mean over the `neighbours` nearest soup vertices,
+    weighted by their opacity over their distance (opaque, near soup vertices dominate: the visible layer)."""
+    from scipy.spatial import cKDTree
+
+    src = scene.positions.detach().cpu().numpy().astype(np.float64)
+    k = int(min(max(neighbours, 1), len(src)))
+    dist, idx = cKDTree(src).query(points, k=k)
+    dist, idx = dist.reshape(len(points), k), idx.reshape(len(points), k)
+    opac = scene.opacities().detach().cpu().numpy().astype(np.float64)
+    w = opac[idx] / np.maximum(dist, 1e-9)
+    w /= np.maximum(w.sum(1, keepdims=True), 1e-30)
+    wt = torch.as_tensor(w, dtype=scene.sh.dtype)
+    sh = (scene.sh.detach().cpu()[torch.as_tensor(idx)] * wt[:, :, None, None]).sum(1)
+    return sh, torch.as_tensor((opac[idx] * w).sum(1), dtype=torch.float32)
+
+
+def image_colors(cameras: Sequence, images: Sequence, depths: Sequence, points: np.ndarray, tolerance: float
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Mean RGB [P,3] of `points` over the views that see them (the point projects into the image, in front of the
+    camera, within `tolerance` scene units of that view's surface depth), and the number of such views [P]."""
+    acc = np.zeros((len(points), 3))
+    cnt = np.zeros(len(points))
+    for cam, img, depth in zip(cameras, images, depths):
+        R, t = cam.world_to_camera[:3, :3], cam.world_to_camera[:3, 3]
+        pc = points @ R.T + t
+        z = pc[:, 2]
+        zs = np.where(z > 1e-9, z, 1.0)
+        u = (cam.K[0, 0] * pc[:, 0] + cam.K[0, 1] * pc[:, 1]) / zs + cam.K[0, 2]
+        v = cam.K[1, 1] * pc[:, 1] / zs + cam.K[1, 2]
+        ok = (z > 1e-9) & (u >= 0) & (v >= 0) & (u < cam.width) & (v < cam.height)
+        col, row = u[ok].astype(np.int64), v[ok].astype(np.int64)
+        vis = np.abs(depth[row, col] - z[ok]) <= tolerance
+        idx = np.nonzero(ok)[0][vis]
+        acc[idx] += np.asarray(img)[row[vis], col[vis], :3]
+        cnt[idx] += 1
+    out = acc / np.maximum(cnt, 1)[:, None]
+    return out, cnt
+
+
+def soup_to_surface(scene: TriangleScene, cameras: Sequence, render: Callable[[int], object],
+                    bounds: np.ndarray | None = None, config: SurfaceConfig = SurfaceConfig(),
+                    progress: Callable[[str], None] | None = None,
+                    images: Callable[[int], np.ndarray] | None = None) -> tuple[TriangleScene, SwitchReport]:
+    """One connected surface from a trained soup.
+
+    cameras: the training cameras (trisplat.cameras.Camera); render(n) -> RenderOutput of the soup seen by
+    cameras[n] (its face_id is used); bounds: float [2,3] content box (normalised frame) or None; images(n) ->
+    the [H,W,3] photo of cameras[n]: when given, each vertex's base colour (SH DC) is the mean colour of the photos
+    that see it (sharper than the soup's, whose layers blur), the higher bands come from the soup. Returns a
+    TriangleScene with the surface's vertices and faces (int32, outward), SH transferred from the soup, the soup's
+    opacity floor and vertex opacities of at least `config.opacity`, and a report. Raises ValueError when the
+    renders show nothing to fuse.
+    """
+    rep = SwitchReport(soup_faces=scene.num_faces, soup_vertices=scene.num_vertices, views=len(cameras))
+    pos = scene.positions.detach().cpu().numpy().astype(np.float64)
+    fc = scene.faces.detach().cpu().numpy().astype(np.int64)
+    t0 = time.perf_counter()
+    depths = []
+    for n, cam in enumerate(cameras):
+        out = render(n)
+        depths.append(fill_holes(surface_depth(out.face_id.cpu().numpy(), pos, fc, np.asarray(cam.world_to_camera),
+                                               np.asarray(cam.K)), config.fill_holes_px))
+    rep.render_s = time.perf_counter() - t0
+    if not any(np.isfinite(d).any() for d in depths):
+        raise ValueError("the soup covers no pixel of any training view: nothing to turn into a surface")
+    t0 = time.perf_counter()
+    box = fusion_box(pos, bounds)
+    rep.grid, rep.voxel = grid_shape(box, config.resolution)
+    grid = fuse_depths(cameras, depths, box, config.resolution, config.truncation_voxels)
+    rep.fuse_s = time.perf_counter() - t0
+    if progress:
+        progress(f"fused {len(cameras)} depth maps ({rep.fuse_s:.1f} s); extracting the surface")
+    t0 = time.perf_counter()
+    verts, faces = extract_surface(grid)
+    rep.marching_cubes_faces = len(faces)
+    if len(faces) == 0:
+        raise ValueError("depth fusion found no surface (every voxel is free): the soup's renders are empty")
+    verts, faces, rep.pieces, rep.pieces_dropped = _drop_small_pieces(verts, faces, config.min_component_fraction)
+    target = int(min(config.max_faces, max(config.face_ratio * scene.num_faces, 1_000)))
+    if len(faces) > target:
+        import fast_simplification
+
+        verts, faces = fast_simplification.simplify(verts, faces.astype(np.int32), target_count=target)
+        verts, faces = _manifold(np.asarray(verts), np.asarray(faces))
+    sh, opac = transfer_attributes(scene, verts, config.neighbours)
+    if images is not None:
+        from trisplat.scene.sh import rgb_to_sh_dc
+
+        rgb, seen = image_colors(cameras, [images(n) for n in range(len(cameras))], depths, verts,
+                                 config.truncation_voxels * rep.voxel)
+        seen_t = torch.as_tensor(seen > 0)
+        sh[seen_t, 0] = rgb_to_sh_dc(torch.as_tensor(rgb[seen > 0], dtype=sh.dtype))
+        rep.notes.append(f"{int((seen > 0).sum())} of {len(verts)} vertices coloured from the photos")
+    floor = float(scene.opacity_floor)
+    o = torch.clamp(torch.maximum(opac, torch.full_like(opac, config.opacity)), floor + 1e-4, 1 - 1e-4)
+    logit = torch.logit((o - floor) / (1 - floor), eps=1e-6)
+    out = TriangleScene(torch.as_tensor(verts, dtype=torch.float32), sh.to(torch.float32).contiguous(),
+                        logit.to(torch.float32), torch.as_tensor(faces, dtype=torch.int32), floor)
+    rep.faces, rep.vertices = out.num_faces, out.num_vertices
+    rep.mesh_s = time.perf_counter() - t0
+    return out, rep
+
+
+def _manifold(verts: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Decimation can fold two faces onto the same vertices or leave more than two faces on an edge: drop duplicate
+    faces, keep the two best-shaped faces at such edges, then pieces below 1% of the largest, unused vertices."""
+    from trisplat.mesh.cleanup import CleanupConfig, clean_mesh
+
+    res = clean_mesh(verts, faces, CleanupConfig(weld=False, repair_non_manifold_edges=True, orient=False))
+    v, f, _, _ = _drop_small_pieces(res.vertices, res.faces, 0.01)
+    return np.asarray(v, dtype=np.float64), f
+
+
+def _drop_small_pieces(verts: np.ndarray, faces: np.ndarray, min_fraction: float):
+    """Remove degenerate faces, pieces with fewer faces than min_fraction x the largest one's, unused vertices.
+    Returns vertices, faces, the number of pieces and how many were dropped."""
+    faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    good = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])
+    faces = faces[good]
+    n, label = face_components(faces, len(verts))
+    if n == 0:
+        return verts, faces, 0, 0
+    sizes = np.bincount(label, minlength=n)
+    keep_piece = sizes >= min_fraction * sizes.max()
+    faces = faces[keep_piece[label]]
+    used = np.zeros(len(verts), bool)
+    used[faces.reshape(-1)] = True
+    remap = np.cumsum(used) - 1
+    return np.asarray(verts)[used], remap[faces], int(n), int((~keep_piece).sum())
