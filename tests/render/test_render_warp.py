@@ -234,3 +234,13 @@ def test_training_with_the_warp_backend_follows_the_numba_run(tmp_path):
     assert len(ln) == len(lw) == 40
     np.testing.assert_allclose(lw, ln, rtol=1e-3)
     assert abs(pw - pn) < 0.05
+
+
+@needs_warp
+def test_bench_render_case_runs_with_the_warp_backend():
+    """`trisplat bench render --backend warp` measures one case (the per-case worker, small)."""
+    from trisplat.bench.render import _run_case
+
+    row = _run_case(64, 48, 300, 2, 20, False, 1, 0.5, backend="warp", device="cpu")
+    assert row["pairs"] > 0 and 0 < row["visible"] <= 300
+    assert row["fwd_ms"] > 0 and row["fwd_bwd_ms"] > 0 and row["hard_ms"] > 0
