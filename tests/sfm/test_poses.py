@@ -98,3 +98,18 @@ def test_too_few_registered_names_the_images(synthetic_frames, tmp_path):
     for i in range(3):
         assert f"noise_{i}.png (" in msg and "0 verified pairs" in msg
     assert not any(f"{c.name}.png (" in msg for c in cams[:10:2])
+
+
+def test_distorted_copy_loads_and_is_undistorted_by_the_loader(synthetic_frames, synthetic_capture, tmp_path):
+    """--no-undistort: the original photos with the SIMPLE_RADIAL model; trisplat's loader undistorts them."""
+    from trisplat.data import load_dataset
+    from trisplat.sfm.pipeline import WORK, _copy_distorted
+
+    folder, cams = synthetic_frames
+    report, out = synthetic_capture
+    copy = tmp_path / "distorted_capture"
+    _copy_distorted(out / WORK / "sparse" / "0", folder, report.registered, copy)
+    data = load_dataset(copy, prepare="lazy", test_every=0)
+    assert len(data.cameras) == len(cams)
+    assert {c.extras.get("source_model") for c in data.cameras} == {"SIMPLE_RADIAL"}
+    assert (copy / "images" / "frame_000.png").read_bytes() == (folder / "frame_000.png").read_bytes()

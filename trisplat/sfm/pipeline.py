@@ -328,7 +328,7 @@ def _undistort(model_dir: Path, image_dir: Path, names: list[str], out: Path, pr
 
 
 def _copy_distorted(model_dir: Path, image_dir: Path, names: list[str], out: Path) -> None:
-    (out / "images").mkdir()
+    (out / "images").mkdir(parents=True)
     for n in names:
         shutil.copy2(image_dir / n, out / "images" / n)
     shutil.copytree(model_dir, out / "sparse" / "0")
