@@ -104,9 +104,10 @@ class TrainConfig:
     connect_method: Literal["fusion", "restricted_delaunay"] = "fusion"
     """'fusion': depth of the soup's renders fused into a TSDF, marching cubes, decimated (trisplat.train.switch);
     'restricted_delaunay': MeshSplatting's restricted Delaunay of the soup's vertices (thin soups only)."""
-    surface_resolution: int = 256
-    """Fusion grid: voxels along the longest side of the content box (fusion switch)."""
-    surface_face_ratio: float = 2.0
+    surface_resolution: int = 512
+    """Fusion grid: voxels along the longest side of the soup's box (fusion switch; lowered to at most 48M voxels
+    and to about two voxels per pixel of the training images)."""
+    surface_face_ratio: float = 4.0
     """Face budget of the surface: this many times the soup's faces at the switch (fusion switch)."""
     surface_max_faces: int = 400_000
     surface_opacity: float = 0.9
@@ -165,9 +166,10 @@ class TrainConfig:
         return TrainConfig(**d)
 
 
-# Progress at which the soup becomes one connected surface (trisplat.train.switch) in the fast and default presets:
-# the end of densification, so the surface gets the whole hardening phase to fine-tune.
-SURFACE_SWITCH_AT = 0.5
+# Progress at which the soup becomes one connected surface (trisplat.train.switch) in the fast and default presets.
+# lego at 200x200, one 12-minute soup saved at 0.5 / 0.65 / 0.8, each fused and fine-tuned for the rest of the run
+# (2x2 samples, first 16 test views; the soup itself ends at 26.15): 25.5 / 25.48 / 25.16 dB (docs/benchmarks.md).
+SURFACE_SWITCH_AT = 0.6
 
 PRESETS: dict[str, dict] = {
     # Sized for a CPU (measured on 2 cores, docs/benchmarks.md). The TS+ densification window (until 13k of 30k

@@ -95,6 +95,7 @@ def write_outputs(trainer, pruned) -> dict:
         "final_prune": None if pruned is None else {"faces_removed": pruned.faces_removed,
                                                     "vertices_removed": pruned.vertices_removed},
         "output": cfg.output, "connected": bool(trainer.connected),
+        "switch_failed": bool(getattr(trainer, "switch_failed", False)),
         "surface_pass": getattr(trainer, "surface_pass", None),
         "mesh": _mesh_summary(scene),
     })

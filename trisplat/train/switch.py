@@ -22,19 +22,21 @@ from trisplat.mesh.cleanup import face_components
 from trisplat.mesh.fusion import extract_surface, fuse_depths, grid_shape
 from trisplat.scene.model import TriangleScene
 
-BOX_PERCENTILE = 1.0  # without a content box: the box of the soup's vertices between these percentiles (per axis)
-BOX_MARGIN = 0.05  # ... grown by this fraction of its size on every side
+BOX_PERCENTILE = 0.5  # the box of the soup's vertices between these percentiles (per axis) ...
+BOX_MARGIN = 0.1  # ... grown by this fraction of its size on every side
 
 
 @dataclass(frozen=True)
 class SurfaceConfig:
     """Settings of the switch. Lengths in voxels of the fusion grid unless said otherwise."""
 
-    resolution: int = 256
-    """voxels along the longest side of the fused box."""
+    resolution: int = 512
+    """voxels along the longest side of the fused box (lowered to fit max_voxels)."""
+    max_voxels: int = 48_000_000
+    """grid size cap (memory: about 9 bytes per voxel; time: voxels x views projections)."""
     truncation_voxels: float = 3.0
     """TSDF truncation distance."""
-    face_ratio: float = 2.0
+    face_ratio: float = 4.0
     """face budget of the surface: this many times the soup's face count (decimated down to it, never up)."""
     max_faces: int = 400_000
     """upper bound of the face budget (count)."""
@@ -126,14 +128,26 @@ def fill_holes(depth: np.ndarray, px: int) -> np.ndarray:
 
 
 def fusion_box(positions: np.ndarray, bounds: np.ndarray | None) -> np.ndarray:
-    """The box to fuse in: the capture's content box when it has one, else the soup's robust extent."""
-    if bounds is not None:
-        lo, hi = np.asarray(bounds, dtype=np.float64)
-    else:
-        lo = np.percentile(positions, BOX_PERCENTILE, axis=0)
-        hi = np.percentile(positions, 100 - BOX_PERCENTILE, axis=0)
+    """The box to fuse in: the soup's robust extent (BOX_PERCENTILE per axis, grown by BOX_MARGIN), cut to the
+    capture's content box when it has one (a tighter box gives finer voxels for the same count)."""
+    lo = np.percentile(positions, BOX_PERCENTILE, axis=0)
+    hi = np.percentile(positions, 100 - BOX_PERCENTILE, axis=0)
     size = np.maximum(hi - lo, 1e-6)
-    return np.stack([lo - BOX_MARGIN * size, hi + BOX_MARGIN * size])
+    lo, hi = lo - BOX_MARGIN * size, hi + BOX_MARGIN * size
+    if bounds is not None:
+        b = np.asarray(bounds, dtype=np.float64)
+        lo2, hi2 = np.maximum(lo, b[0]), np.minimum(hi, b[1])
+        if (hi2 > lo2).all():
+            lo, hi = lo2, hi2
+    return np.stack([lo, hi])
+
+
+def fitting_resolution(box: np.ndarray, resolution: int, max_voxels: int) -> int:
+    """`resolution` (voxels along the box's longest side), lowered until the grid has at most max_voxels."""
+    res = int(resolution)
+    while res > 8 and int(np.prod(grid_shape(box, res)[0])) > max_voxels:
+        res = int(res * 0.9)
+    return res
 
 
 def transfer_attributes(scene: TriangleScene, points: np.ndarray, neighbours: int = 8
@@ -205,8 +219,9 @@ def soup_to_surface(scene: TriangleScene, cameras: Sequence, render: Callable[[i
         raise ValueError("the soup covers no pixel of any training view: nothing to turn into a surface")
     t0 = time.perf_counter()
     box = fusion_box(pos, bounds)
-    rep.grid, rep.voxel = grid_shape(box, config.resolution)
-    grid = fuse_depths(cameras, depths, box, config.resolution, config.truncation_voxels)
+    res = fitting_resolution(box, config.resolution, config.max_voxels)
+    rep.grid, rep.voxel = grid_shape(box, res)
+    grid = fuse_depths(cameras, depths, box, res, config.truncation_voxels)
     rep.fuse_s = time.perf_counter() - t0
     if progress:
         progress(f"fused {len(cameras)} depth maps ({rep.fuse_s:.1f} s); extracting the surface")

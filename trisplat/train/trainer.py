@@ -76,6 +76,7 @@ class Trainer:
         self._failed_step = 0  # the step of the last NaN/Inf rollback
         self.wall_s = 0.0
         self.connected = False
+        self.switch_failed = False  # the fusion switch found no surface: the run stays a soup
         self.surface_pass: dict | None = None
         self._last_prune = self._last_densify = -(10**9)
         self.init_report = None  # what the initialisation did (when this trainer made the initial triangles)
@@ -113,7 +114,7 @@ class Trainer:
         return {"clock": [self.clock.total, self.clock.anchor_step, self.clock.anchor_p], "wall_s": self.wall_s,
                 "last_prune": self._last_prune, "last_densify": self._last_densify,
                 "lr_scale": self.lr_scale, "rollbacks": self.rollbacks, "failed_step": self._failed_step,
-                "connected": self.connected,
+                "connected": self.connected, "switch_failed": self.switch_failed,
                 "normalization": np.asarray(self.data.normalization).tolist()}
 
     def _restore(self, ckpt: dict) -> None:
@@ -127,6 +128,7 @@ class Trainer:
         self.rollbacks = int(ckpt["extra"]["rollbacks"])
         self._failed_step = int(ckpt["extra"].get("failed_step", 0))
         self.connected = bool(ckpt["extra"].get("connected", False))
+        self.switch_failed = bool(ckpt["extra"].get("switch_failed", False))
         self._last_prune = int(ckpt["extra"].get("last_prune", -(10**9)))
         self._last_densify = int(ckpt["extra"].get("last_densify", -(10**9)))
 
@@ -234,7 +236,7 @@ class Trainer:
         n_train = len(self.data.train_indices)
         if self.step % n_train == 0:
             ts.roll_face_stats()
-        if cfg.switch_at is not None and not self.connected and p >= cfg.switch_at:
+        if cfg.switch_at is not None and not self.connected and not self.switch_failed and p >= cfg.switch_at:
             self._connect()
         seen_all_views = self.step >= n_train
         # pruning judges faces by statistics over every view, so two prunes are at least one epoch apart; so are two
@@ -294,9 +296,13 @@ class Trainer:
                 self.ts.to_scene(), [self.data.cameras[i] for i in train], lambda n: self.render(train[n], p),
                 self.data.bounds if masked else None, scfg, say, images=lambda n: self.data.load_image(train[n]))
         except ValueError as exc:
-            raise RuntimeError(
-                f"the switch to a connected surface at step {self.step} failed ({exc}); the last good checkpoint is "
-                f"{self.run_dir / layout.CHECKPOINT}. Try a later --connect-at, or --output soup.") from exc
+            # hours of training are not thrown away: the run goes on as a soup and says why
+            self.switch_failed = True
+            msg = (f"the switch to a connected surface at step {self.step} failed ({exc}); training goes on with the "
+                   "soup (try a later --connect-at)")
+            self._log({"step": self.step, "switch_failed": msg})
+            print(f"warning: {msg}", file=sys.stderr, flush=True)
+            return
         ops.replace_scene(self.ts, surface)
         self.connected = True
         self._log({"step": self.step, "wall_s": round(self.wall_s, 3), "switch": report.to_dict()})
@@ -374,8 +380,26 @@ class Trainer:
         # p 0.5 -> 1, in the last fifth of a lego trial; docs/benchmarks.md).
         planned = not cfg.minutes  # a resumed run re-plans too: after steps timed on this machine, in this process
         window: list[float] = []
-        bar = tqdm(total=self.clock.total, initial=self.step, disable=not self.show_progress, unit="step",
-                   dynamic_ncols=True, desc="train")
+        # a --minutes run re-plans its step count as it goes: its bar shows progress through the schedule in percent
+        # (continuous across re-plans, so it never jumps back), with step / planned steps beside it
+        by_percent = bool(cfg.minutes)
+        bar = tqdm(total=100.0 if by_percent else self.clock.total, disable=not self.show_progress,
+                   unit="%" if by_percent else "step", dynamic_ncols=True, desc="train",
+                   bar_format="{l_bar}{bar}| {n:.1f}/100% [{elapsed}<{remaining}{postfix}]" if by_percent else None)
+        if self.show_progress and by_percent:
+            print(f"--minutes {cfg.minutes:g}: the optimisation steps are planned into {cfg.minutes:g} minutes; "
+                  "compiling, the intermediate test evaluations and the final scoring and exports come on top",
+                  file=sys.stderr, flush=True)
+
+        def show_progress() -> None:
+            if by_percent:
+                bar.n = round(100.0 * self.clock.p(self.step), 1)
+                bar.refresh()
+            else:
+                bar.n = self.step
+                bar.refresh()
+
+        show_progress()
         # the next evaluation point after the current progress (a resumed run already evaluated the earlier ones)
         next_eval = (math.floor(self.clock.p(self.step) / cfg.eval_every) + 1) * cfg.eval_every if self.step and \
             cfg.eval_every > 0 else cfg.eval_every
@@ -389,8 +413,9 @@ class Trainer:
             info = self.train_step()
             if not info["ok"]:
                 self._rollback()
-                bar.reset(total=self.clock.total)
-                bar.update(self.step)
+                if not by_percent:
+                    bar.total = self.clock.total
+                show_progress()
                 continue
             self.step += 1
             self._forgive_rollbacks()
@@ -400,17 +425,16 @@ class Trainer:
             if not planned and len(window) >= MINUTES_WARMUP_STEPS:
                 planned = True
                 self._plan_minutes(float(np.median(window)), self.wall_s)
-                bar.total = self.clock.total
             elif cfg.minutes and planned and self.step % MINUTES_REPLAN_EVERY == 0:
                 self._plan_minutes(float(np.median(window)), self.wall_s)
-                bar.total = self.clock.total
             if self.step % cfg.log_every == 0 or self.step == self.clock.total:
                 rec = {"step": self.step, "wall_s": round(self.wall_s, 3), "loss": info["loss"], "psnr": info["psnr"],
                        "faces": self.ts.num_faces, "vertices": self.ts.num_vertices,
                        "sigma": schedules.sigma(self.clock.p(self.step), cfg), "floor": self.ts.opacity_floor}
                 self._log(rec)
-                bar.set_postfix(loss=f"{info['loss']:.4f}", psnr=f"{info['psnr']:.2f}", faces=self.ts.num_faces,
-                                sigma=f"{rec['sigma']:.3g}")
+                bar.set_postfix(({"step": f"{self.step}/{self.clock.total}"} if by_percent else {})
+                                | dict(loss=f"{info['loss']:.4f}", psnr=f"{info['psnr']:.2f}", faces=self.ts.num_faces,
+                                       sigma=f"{rec['sigma']:.3g}"), refresh=False)
             if self.clock.p(self.step) >= next_eval and self.step < self.clock.total:
                 # re-planning (--minutes) can move progress past several evaluation points at once
                 next_eval = (math.floor(self.clock.p(self.step) / cfg.eval_every) + 1) * cfg.eval_every
@@ -420,7 +444,7 @@ class Trainer:
                 bar.write(f"step {self.step}: test PSNR {test_psnr:.2f} dB ({self.ts.num_faces} faces)")
             if self.wall_s - float(self._last_good["extra"]["wall_s"]) >= cfg.checkpoint_every_s:
                 self.save_checkpoint()
-            bar.update(1)
+            show_progress()
         bar.close()
         self.save_checkpoint()
         metrics = self.finish() if self.step >= self.clock.total else {}
