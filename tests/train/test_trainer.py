@@ -326,3 +326,54 @@ def test_connect_switch_refuses_to_leave_zero_faces(tiny_scene, tmp_path, monkey
         tr.train()
     assert tr.ts.num_faces > 0  # the soup was kept, and so was the checkpoint
     assert torch.load(tmp_path / "c0" / layout.CHECKPOINT, weights_only=True)["faces"].shape[0] > 0
+
+
+def test_minutes_progress_bar_never_jumps_or_goes_back(tiny_scene, tmp_path, monkeypatch):
+    """A --minutes run re-plans its step count (1500 -> 104 -> 184 planned steps in the report): its bar counts
+    percent of the schedule, with a fixed total, rising steadily to 100."""
+    import trisplat.train.trainer as trainer_mod
+
+    bars = []
+
+    class Recorder:
+        def __init__(self, total=None, **kw):
+            self.total, self.n, self.seen, self.totals = total, 0, [], [total]
+            bars.append(self)
+
+        def refresh(self):
+            self.seen.append(self.n)
+            self.totals.append(self.total)
+
+        def set_postfix(self, *a, **k):
+            pass
+
+        def write(self, *a):
+            pass
+
+        def close(self):
+            pass
+
+    monkeypatch.setattr(trainer_mod, "tqdm", Recorder)
+    clock = {"t": 0.0}
+    monkeypatch.setattr(trainer_mod, "time", type("FakeTime", (), {"perf_counter": staticmethod(lambda: clock["t"])}))
+    tr = _trainer(tiny_scene, tmp_path / "bar", minutes=0.2, steps=10**6)
+
+    def fake_step():
+        clock["t"] += 0.05 if tr.clock.p(tr.step) < 0.3 else 0.2  # steps get dearer: the plan changes
+        return {"ok": True, "loss": 0.1, "psnr": 20.0}
+
+    monkeypatch.setattr(tr, "train_step", fake_step)
+    monkeypatch.setattr(tr, "_strategy", lambda p_prev, p: None)
+    monkeypatch.setattr(tr, "evaluate", lambda p, max_views=None: 0.0)
+    monkeypatch.setattr(tr, "finish", lambda: {})
+    tr.train()
+    bar = bars[-1]
+    assert set(bar.totals) == {100.0}
+    assert all(b >= a for a, b in zip(bar.seen, bar.seen[1:])) and bar.seen[-1] == 100.0
+    # a run with a fixed step count counts steps
+    tr2 = _trainer(tiny_scene, tmp_path / "bar2", steps=5)
+    monkeypatch.setattr(tr2, "train_step", fake_step)
+    monkeypatch.setattr(tr2, "_strategy", lambda p_prev, p: None)
+    monkeypatch.setattr(tr2, "finish", lambda: {})
+    tr2.train()
+    assert bars[-1].totals == [5] * len(bars[-1].totals) and bars[-1].seen[-1] == 5

@@ -9,6 +9,8 @@ from typing import Annotated
 import numpy as np
 import tyro
 
+from trisplat.commands.style import CLI_STYLE, NO_DEFAULT_HINT
+
 
 @dataclass
 class CompareConfig:
@@ -18,7 +20,7 @@ class CompareConfig:
     """reference image (PNG/JPEG/...)"""
     image_b: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="IMG_B")]
     """image to score against the reference, same size"""
-    lpips_weights: Path | None = None
+    lpips_weights: Annotated[Path | None, NO_DEFAULT_HINT] = None
     """LPIPS .npz (default: $TRISPLAT_LPIPS_WEIGHTS, else ~/.cache/trisplat/lpips_alexnet_full_oihw.npz)"""
 
 
@@ -57,7 +59,7 @@ def compare_images(a: np.ndarray, b: np.ndarray, lpips_weights: Path | None = No
 
 
 def main(argv: list[str]) -> int:
-    cfg = tyro.cli(CompareConfig, args=argv, description=__doc__, prog="trisplat compare")
+    cfg = tyro.cli(CompareConfig, args=argv, description=__doc__, prog="trisplat compare", config=CLI_STYLE)
     a, b = read_rgb(cfg.image_a), read_rgb(cfg.image_b)
     if a.shape != b.shape:
         raise ValueError(f"{cfg.image_b}: size {b.shape[1]}x{b.shape[0]} differs from {cfg.image_a} "

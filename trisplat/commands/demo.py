@@ -6,8 +6,11 @@ import json
 import sys
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated
 
 import tyro
+
+from trisplat.commands.style import CLI_STYLE, NO_DEFAULT_HINT
 
 from trisplat import run as layout
 
@@ -22,15 +25,18 @@ class DemoArgs:
 
     out: Path = Path("trisplat_demo")
     """Output folder: scene/ (generated photos), run/ (the trained run), index.html."""
-    minutes: float | None = None
+    minutes: Annotated[float | None, NO_DEFAULT_HINT] = None
     """Fit training into this many minutes of wall time (default: the fast preset's step count)."""
-    steps: int | None = None
+    steps: Annotated[int | None, NO_DEFAULT_HINT] = None
+    """Training steps (default: the fast preset's)."""
     views: int = 48
     """Training views to generate (plus 8 test views)."""
     size: int = 128
     """Image width and height in pixels."""
     force: bool = False
+    """Start over: the previous output folder is moved aside (never deleted)."""
     quiet: bool = False
+    """No progress bars or messages, only the final line."""
 
 
 def generate_scene(out: Path, views: int, size: int, quiet: bool) -> Path:
@@ -80,7 +86,7 @@ PSNR {fmt(metrics.get('psnr_1spp', metrics.get('psnr')), 2)} dB);
 
 
 def main(argv: list[str]) -> int:
-    args = tyro.cli(DemoArgs, args=argv, description=DemoArgs.__doc__, prog=PROG)
+    args = tyro.cli(DemoArgs, args=argv, description=DemoArgs.__doc__, prog=PROG, config=CLI_STYLE)
     from trisplat.commands.train import make_train_args, run_training
 
     out = args.out

@@ -8,6 +8,8 @@ from typing import Annotated, Literal
 
 import tyro
 
+from trisplat.commands.style import CLI_STYLE, NO_DEFAULT_HINT
+
 
 @dataclass
 class EvalConfig:
@@ -19,22 +21,22 @@ class EvalConfig:
     """which views to render"""
     mode: Literal["hard", "soft"] = "hard"
     """hard: the opaque mesh under a z-buffer (what exports show); soft: the training renderer at the run's sigma"""
-    out: Path | None = None
+    out: Annotated[Path | None, NO_DEFAULT_HINT] = None
     """output folder (default RUN/eval_<split>, RUN/eval_<split>_soft in soft mode)"""
-    lpips_weights: Path | None = None
+    lpips_weights: Annotated[Path | None, NO_DEFAULT_HINT] = None
     """LPIPS .npz (default: $TRISPLAT_LPIPS_WEIGHTS, else ~/.cache/trisplat/lpips_alexnet_full_oihw.npz)"""
-    max_views: int | None = None
-    """evaluate only the first N views of the split (a quick look)"""
+    max_views: Annotated[int | None, NO_DEFAULT_HINT] = None
+    """evaluate only the first N views of the split (a quick look; default: all)"""
     report: bool = True
     """write report.html (with pictures) next to metrics.json"""
-    supersample: int | None = None
+    supersample: Annotated[int | None, NO_DEFAULT_HINT] = None
     """samples per pixel side (anti-aliasing, 1-4; default: the run's eval_supersample, 1 for older runs)"""
     force: bool = False
     """replace an existing evaluation in the output folder (e.g. the one the training wrote)"""
 
 
 def main(argv: list[str]) -> int:
-    cfg = tyro.cli(EvalConfig, args=argv, description=__doc__, prog="trisplat eval")
+    cfg = tyro.cli(EvalConfig, args=argv, description=__doc__, prog="trisplat eval", config=CLI_STYLE)
     from trisplat.eval.report import METRICS_JSON, REPORT_HTML, json_safe
     from trisplat.eval.views import evaluate_run
     from trisplat.io.atomic import refuse_to_overwrite

@@ -4,10 +4,11 @@ from __future__ import annotations
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import tyro
 
+from trisplat.commands.style import CLI_STYLE, NO_DEFAULT_HINT
 from trisplat.io.export_run import EXPORT_FORMATS, export_run, export_targets
 
 EXPORT_SUBDIR = "export"
@@ -28,14 +29,14 @@ class ExportConfig:
     """rotate meshes so the capture's up (mean camera up vector) becomes +Y (glTF, Unity) or +Z (Blender, MuJoCo);
     capture: keep the capture's own axes in every format; auto: GLB Y-up (glTF defines +Y as up), PLY and OBJ in
     the capture's axes"""
-    out: Path | None = None
+    out: Annotated[Path | None, NO_DEFAULT_HINT] = None
     """output folder (default: RUN/export)"""
     force: bool = False
     """replace files that already exist in the output folder"""
 
 
 def main(argv: list[str]) -> int:
-    cfg = tyro.cli(ExportConfig, args=argv, prog="trisplat export", description=__doc__)
+    cfg = tyro.cli(ExportConfig, args=argv, prog="trisplat export", description=__doc__, config=CLI_STYLE)
     out = cfg.run / EXPORT_SUBDIR if cfg.out is None else cfg.out
     formats = tuple(dict.fromkeys(cfg.formats))
     assert set(formats) <= set(EXPORT_FORMATS)

@@ -4,10 +4,12 @@ from __future__ import annotations
 import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import numpy as np
 import tyro
+
+from trisplat.commands.style import CLI_STYLE, NO_DEFAULT_HINT
 
 
 @dataclass
@@ -22,8 +24,8 @@ class ExtractArgs:
     stem, e.g. r_12.png for train/r_12.png); any size with the image's aspect ratio."""
     ratio: float = 0.5
     """A face is the object's when at least this fraction of the masked-view pixels showing it are masked."""
-    out: Path | None = None
-    """Output folder (default RUN/extract)."""
+    out: Annotated[Path | None, NO_DEFAULT_HINT] = None
+    """Output folder (default: RUN/extract)."""
     min_pixels: int = 1
     """A face must be shown by at least this many pixels over the masked views to be selected."""
     fill_hidden: bool = False
@@ -33,8 +35,8 @@ class ExtractArgs:
     """How pixels get their face: hard z-buffer (auto), soft splatting at the run's final sigma (the face where the
     accumulated weight passes 0.5), or embree ray casting."""
     train_views_only: bool = False
-    """Match masks against the training views only (default: any view; a name shared by a training and a test
-    view, as in Blender captures, means the training view)."""
+    """Match masks against the training views only. Without it masks match any view; a name shared by a training
+    and a test view, as in Blender captures, means the training view."""
     mesh_format: Literal["ply", "obj", "glb"] = "ply"
     """File format of the output meshes object.* and remainder.* (a GLB is Y-up)."""
     force: bool = False
@@ -107,7 +109,8 @@ def extract_run(args: ExtractArgs) -> ExtractResult:
 
 
 def main(argv: list[str]) -> int:
-    args = tyro.cli(ExtractArgs, args=argv, prog="trisplat extract", description=ExtractArgs.__doc__)
+    args = tyro.cli(ExtractArgs, args=argv, prog="trisplat extract", description=ExtractArgs.__doc__,
+                      config=CLI_STYLE)
     r = extract_run(args)
     print(f"{r.masks} masked views; {r.faces_seen} of {r.faces} faces seen in them; "
           f"object: {r.object_faces} faces -> {r.object_path}; remainder: {r.remainder_faces} faces"

