@@ -138,3 +138,49 @@ def test_report_page_lays_out_in_headless_chromium(evaluated):
     assert probe_result["div"] == "flex"
     assert len(set(probe_result["cellTops"])) == 1  # a row's cells side by side
     assert probe_result["broken"] == [] and probe_result["images"] >= 3 * len(m.views)
+
+
+DEMO_PROBE = """<script>window.addEventListener('load', () => {
+  const broken = [...document.images].filter(i => !i.complete || i.naturalWidth === 0).map(i => i.src);
+  document.body.setAttribute('data-probe', JSON.stringify({broken: broken, images: document.images.length}));
+});</script>"""
+
+
+def _probe(page_path: Path, script: str) -> dict:
+    """Load page_path with `script` appended in headless Chromium and return what the script recorded."""
+    import html
+
+    chromium = _chromium()
+    probe = page_path.with_name("probe.html")
+    probe.write_text(page_path.read_text().replace("</body>", script + "</body>"))
+    with tempfile.TemporaryDirectory(prefix="trisplat-page-") as tmp:
+        try:
+            proc = subprocess.run([chromium, "--headless", "--no-sandbox", "--disable-gpu", "--no-first-run",
+                                   f"--user-data-dir={tmp}/profile", "--allow-file-access-from-files",
+                                   "--virtual-time-budget=10000", "--dump-dom", probe.as_uri()],
+                                  capture_output=True, text=True, timeout=CHROMIUM_TIMEOUT_S)
+        finally:
+            probe.unlink()
+    found = re.search(r"data-probe=\"([^\"]*)\"", proc.stdout)
+    assert found, f"chromium gave no probe result (rc {proc.returncode}): {proc.stderr[-2000:]}"
+    return json.loads(html.unescape(found.group(1)))
+
+
+def test_demo_page_pairs_every_render_with_its_ground_truth_in_chromium(tmp_path):
+    """The demo's index.html shows each test render beside the photo of the same name: every picture loads."""
+    from PIL import Image
+
+    from trisplat.commands.demo import write_page
+
+    out = tmp_path / "demo"
+    (out / "scene" / "test").mkdir(parents=True)
+    renders = out / "run" / "renders"
+    renders.mkdir(parents=True)
+    for name in ("r_0", "r_1"):
+        Image.new("RGB", (8, 8), (200, 10, 10)).save(out / "scene" / "test" / f"{name}.png")
+        Image.new("RGB", (8, 8), (10, 200, 10)).save(renders / f"{name}.png")
+    (out / "run" / "metrics.json").write_text(json.dumps({"psnr": 30.0, "ssim": 0.9, "lpips": None, "faces": 10,
+                                                          "vertices": 8, "steps": 5, "wall_s": 60.0}))
+    page = write_page(out, out / "run")
+    result = _probe(page, DEMO_PROBE)
+    assert result["images"] == 4 and result["broken"] == []

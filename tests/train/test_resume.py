@@ -250,3 +250,18 @@ def test_model_and_mesh_files_are_written_atomically(tmp_path, monkeypatch, suff
     assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
     if suffix != "model":
         np.testing.assert_allclose(load_mesh(target)[0], pos)
+
+
+def test_resume_with_force_continues_in_place(scene, tmp_path):
+    """--force means "start over" only without --resume: together they continue the run, nothing is moved."""
+    run = tmp_path / "run"
+    from trisplat.commands.train import make_train_args
+    from trisplat.train.trainer import Trainer
+
+    args = make_train_args(scene, run, preset="fast", steps=10, sh_degree=1, init_random_points=300,
+                           eval_supersample=1, num_renders=0)
+    data, opts = _data_and_options(scene, args.config)
+    Trainer(args.config, data, run, show_progress=False, data_options=opts, data_path=str(scene)).train(stop_after=4)
+    assert cli_main(["train", str(scene), "--out", str(run), "--resume", "--force", "--quiet"]) == 0
+    assert json.loads((run / layout.STATE).read_text())["finished"] and not list(tmp_path.glob("run.old-*"))
+    assert max(_logged_steps(run)) == 10

@@ -154,7 +154,7 @@ def run_training(args: TrainArgs, explicit: set[str] | None = None):
     if args.resume and not resume:
         print(f"{out}: no checkpoint yet (stopped during initialisation): starting it again with its saved "
               "configuration", file=sys.stderr)
-    elif args.force:
+    elif args.force and not args.resume:
         move_aside(out)
     trainer = Trainer(cfg, data, out, resume=resume, show_progress=not args.quiet,
                       data_options=data_options, data_path=data_path)
