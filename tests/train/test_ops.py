@@ -124,3 +124,49 @@ def test_floor_raise_keeps_opacities():
     before = ts.opacities().detach().clone()
     raise_floor(ts, 0.2)
     torch.testing.assert_close(ts.opacities().detach()[before > 0.21], before[before > 0.21], atol=1e-5, rtol=0)
+
+
+def _edge_face_counts(faces):
+    from trisplat.mesh.orient import edge_table
+
+    t = edge_table(faces.numpy())
+    return {tuple(e): int(c) for e, c in zip(t.edges.tolist(), t.edge_face_count.tolist())}
+
+
+def test_subdivision_and_pruning_keep_shared_edges_shared():
+    """A connected grid stays connected: subdividing both faces of an edge gives the two halves of that edge two
+    faces each (one shared midpoint, no crack); removing faces elsewhere leaves other shared edges shared; the
+    replacement by a connected surface keeps rows and faces aligned."""
+    scene = _grid_scene(n=2)
+    ts = _trainable_with_moments(scene)
+    interior_before = sum(c == 2 for c in _edge_face_counts(ts.faces).values())
+    # faces 0 and 1 share the diagonal (a, c) of the first cell
+    a, c = int(ts.faces[0, 0]), int(ts.faces[0, 2])
+    assert {a, c} <= set(ts.faces[1].tolist())
+    added = ops.subdivide_faces(ts, torch.tensor([0, 1]))
+    assert added == 5  # 6 edges of two faces, the shared one counted once
+    counts = _edge_face_counts(ts.faces)
+    mid = [v for v in range(ts.num_vertices) if torch.allclose(ts.params["positions"][v].detach(),
+                                                               0.5 * (ts.params["positions"][a] + ts.params["positions"][c]).detach())]
+    assert len(mid) == 1  # one midpoint for the shared edge
+    m = mid[0]
+    assert counts[tuple(sorted((a, m)))] == 2 and counts[tuple(sorted((m, c)))] == 2
+    assert tuple(sorted((a, c))) not in counts  # the parent edge is gone, not left as a crack
+    # pruning the faces of the last cell (and then orphaned vertices) keeps every edge the kept faces shared shared
+    def shared_edges_by_position(faces, pos):
+        key = {e: c for e, c in _edge_face_counts(faces).items()}
+        return sorted((tuple(pos[e[0]].tolist()), tuple(pos[e[1]].tolist())) for e, c in key.items() if c == 2)
+
+    keep = torch.arange(ts.num_faces) < ts.num_faces - 2
+    expected = shared_edges_by_position(ts.faces[keep], ts.params["positions"].detach())
+    ops.keep_faces(ts, keep)
+    assert ops.remove_orphan_vertices(ts) >= 0
+    assert shared_edges_by_position(ts.faces, ts.params["positions"].detach()) == expected
+    assert len(expected) >= interior_before - 1  # only the removed cell's own diagonal went
+    # replace_scene: a new vertex table and faces, fresh moments, aligned rows
+    new = _grid_scene(n=3, seed=1)
+    ops.replace_scene(ts, new)
+    assert ts.num_vertices == new.num_vertices and torch.equal(ts.faces, new.faces.to(torch.int64))
+    assert all(ts.params[n] not in ts.optimizer.state for n in ops.VERTEX_PARAMS)
+    assert [g["params"][0] for g in ts.optimizer.param_groups] == [ts.params[n] for n in ops.VERTEX_PARAMS]
+    assert ts.face_stats["max_weight"].shape == (new.num_faces,)
