@@ -186,7 +186,7 @@ def main(argv: list[str]) -> int:
     default = TrainArgs(data=tyro.MISSING, out=tyro.MISSING, preset=preset,  # type: ignore[arg-type]
                         config=make_config(preset) if preset in PRESETS else TrainConfig())
     args = tyro.cli(TrainArgs, args=argv, default=default, description=TrainArgs.__doc__, prog=PROG,
-                    config=(tyro.conf.OmitArgPrefixes, tyro.conf.DisallowNone))
+                    config=(tyro.conf.OmitArgPrefixes,))  # no DisallowNone: `--connect-at None` is meaningful
     args = pose_plain_photos(args)
     try:
         result = run_training(args, explicit_fields(argv))
