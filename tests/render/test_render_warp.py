@@ -244,3 +244,17 @@ def test_bench_render_case_runs_with_the_warp_backend():
     row = _run_case(64, 48, 300, 2, 20, False, 1, 0.5, backend="warp", device="cpu")
     assert row["pairs"] > 0 and 0 < row["visible"] <= 300
     assert row["fwd_ms"] > 0 and row["fwd_bwd_ms"] > 0 and row["hard_ms"] > 0
+
+
+def test_train_command_refuses_cuda_without_a_gpu_before_touching_the_run(tmp_path, monkeypatch):
+    from trisplat.commands.train import make_train_args, run_training
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "keep.txt").write_text("x")
+    args = make_train_args(tmp_path / "nowhere", out, "fast", force=True)
+    args.device = "cuda"
+    with pytest.raises(ValueError, match="no CUDA device"):
+        run_training(args)
+    assert (out / "keep.txt").exists()

@@ -38,6 +38,9 @@ class TrainArgs:
     """Start over in a directory that holds a run (the old run is moved aside, never deleted)."""
     quiet: bool = False
     """No progress bar or messages (errors are still printed)."""
+    device: Literal["cpu", "cuda", "auto"] = "cpu"
+    """cpu: the Numba kernels; cuda: the tensors on the GPU and the Warp renderer (gpu extra and a CUDA build of
+    torch; not yet run end to end on a GPU, see docs/benchmarks_gpu.md); auto: cuda when both are there."""
     config: Annotated[TrainConfig, tyro.conf.arg(name="")] = field(default_factory=TrainConfig)
 
 
@@ -125,9 +128,11 @@ def run_training(args: TrainArgs, explicit: set[str] | None = None):
     default those of args.config that differ from its preset)."""
     from trisplat.data import load_dataset
     from trisplat.io.atomic import atomic_write_text
+    from trisplat.render.warp_backend import resolve_device
     from trisplat.train.trainer import Trainer
 
     out = args.out
+    device = resolve_device(args.device)  # before anything in `out` changes
     prepare_run_dir(out, args.resume, args.force)
     resume = args.resume and (out / layout.CHECKPOINT).exists()
     if args.resume:
@@ -156,8 +161,10 @@ def run_training(args: TrainArgs, explicit: set[str] | None = None):
               "configuration", file=sys.stderr)
     elif args.force and not args.resume:
         move_aside(out)
+    if device.type == "cuda" and cfg.backend == "numba":  # the Numba kernels run on the CPU only
+        cfg = dataclasses.replace(cfg, backend="warp")
     trainer = Trainer(cfg, data, out, resume=resume, show_progress=not args.quiet,
-                      data_options=data_options, data_path=data_path)
+                      data_options=data_options, data_path=data_path, device=device)
     if resume and cfg != TrainConfig.from_dict({k: v for k, v in run.config.items()
                                                  if k not in ("data", "data_options")}):
         atomic_write_text(out / layout.CONFIG, json.dumps({**run.config, **cfg.to_dict()}, indent=2))
