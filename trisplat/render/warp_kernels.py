@@ -1,3 +1,5 @@
+# ruff: noqa: UP018 - Warp treats a variable assigned a bare literal as a constant: int(0) / float(0.0) declare
+# the local variables that loops and branches modify.
 """NVIDIA Warp kernels of the soft and hard rasterizers: one source, compiled for CUDA or for Warp's CPU device.
 
 The GPU design of gsplat / 3DGS, with the maths of the Numba kernels (kernels.py, same THETA layout):
