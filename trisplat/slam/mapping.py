@@ -27,7 +27,7 @@ class MapConfig:
     """Adam step of the opacity logits"""
     lambda_dssim: float = 0.2
     w_color: float = 0.5
-    w_depth: float = 1.0
+    w_depth: float = 10.0
     """depth L1 weight (per metre)"""
     w_normal: float = 0.05
     """weight of 1 - n_rendered . n_depth on covered pixels with a valid depth normal"""
@@ -73,7 +73,7 @@ def keyframe_loss(smap: SlamMap, kf: Keyframe, K: torch.Tensor, sigma: float, cf
     loss = cfg.w_color * photometric(out.rgb, kf.rgb, cfg.lambda_dssim)
     loss = loss + cfg.w_depth * ((surf - kf.depth).abs() * mask).sum() / n
     # Observed surface not covered: pull alpha up there (depth says something is there).
-    loss = loss + cfg.w_depth * 0.1 * ((1 - alpha) * valid).sum() / valid.sum().clamp_min(1)
+    loss = loss + 0.1 * ((1 - alpha) * valid).sum() / valid.sum().clamp_min(1)
     nm = mask & kf.normal_ok
     if cfg.w_normal > 0 and bool(nm.any()):
         loss = loss + cfg.w_normal * ((alpha - (out.normal * kf.normal).sum(-1)) * nm).sum() / nm.sum()
