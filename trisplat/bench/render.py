@@ -164,7 +164,9 @@ def main(argv: list[str] | None = None) -> int:
             return 1
         dev = resolve_device(cfg.device)
         table.notes.append(f"Backend warp (NVIDIA Warp kernels) on device {device_name(dev)}; the dense reference "
-                           "runs on the same device. Warp's CPU device runs kernels on one thread.")
+                           "runs on the same device. Warp's CPU device runs kernels on one thread. 'pairs evaluated' "
+                           "counts, for warp, the (pixel, face) pairs of each tile's list whose pixel lies in the "
+                           "face's pixel box (a thread per pixel tests every face of its tile).")
     else:
         dev = None
     for w, h, n, lo, hi in tqdm(cases, desc="bench render"):
