@@ -41,7 +41,10 @@ class TrainBenchArgs:
     """What the runs end with: 'surface' (one connected mesh, the default) or 'soup' (independent triangles)."""
     backend: Literal["numba", "warp"] = "numba"
     """Soft renderer the runs train with (the config's backend): numba, or warp (NVIDIA Warp kernels, gpu extra; on
-    the trainer's device, the CPU here: Warp's CPU device is single-threaded). Warp results go to train_warp.*"""
+    the trainer's device: see --device). Warp results go to train_warp.*"""
+    device: Literal["cpu", "cuda", "auto"] = "cpu"
+    """Where the runs train (as `trisplat train --device`; cuda implies the warp backend). On the CPU the warp
+    backend runs on Warp's CPU device, single-threaded."""
 
 
 def _psnr_at_fractions(history: list[dict], fractions=(0.25, 0.5, 0.75)) -> list[str]:
@@ -130,8 +133,10 @@ def main(argv: list[str]) -> int:
             tag = "" if args.backend == "numba" else f"_{args.backend}"
             tag += "" if args.output == "surface" else f"_{args.output}"
             run_dir = args.runs / f"{name}_{preset}_{args.minutes:g}min{tag}"
-            result = run_training(make_train_args(data, run_dir, preset, force=True, minutes=args.minutes,
-                                                  backend=args.backend, output=args.output, **opts))
+            targs = make_train_args(data, run_dir, preset, force=True, minutes=args.minutes, backend=args.backend,
+                                    output=args.output, **opts)
+            targs.device = args.device
+            result = run_training(targs)
             m = result.metrics
             hist = open_run(run_dir).history()
             row = [
@@ -163,7 +168,7 @@ def main(argv: list[str]) -> int:
         "centre. Chamfer = mean of accuracy "
         "and completeness (DTU style) against the true surface, 200k area-uniform samples, seed 0."
     )
-    table.notes.append(f"Soft renderer (training): backend {args.backend}.")
+    table.notes.append(f"Soft renderer (training): backend {args.backend}, device {args.device}.")
     md = table.write(args.out, "trisplat bench train " + " ".join(argv))
     print(md.read_text())
     return 0
