@@ -25,7 +25,7 @@ class PosesBenchArgs:
 
     capture: Path = DEFAULT_CAPTURE
     """capture with images/ and a reference model in sparse/0 (default ../shared/data/fox)"""
-    camera_models: list[str] = field(default_factory=lambda: ["SIMPLE_RADIAL"])
+    camera_models: list[str] = field(default_factory=lambda: ["auto"])
     """one run per COLMAP camera model"""
     out: Path = Path("bench_results")
     """folder for poses.json and poses.md; the captures go to OUT/poses_<model>/"""

@@ -25,8 +25,9 @@ class PosesArgs:
     """sequential matching: successors each image is matched with"""
     loop_neighbours: int = 5
     """sequential matching: most similar images elsewhere in the sequence each image is matched with (0: none)"""
-    camera_model: Literal["SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"] = "SIMPLE_RADIAL"
-    """COLMAP camera model fitted (SIMPLE_RADIAL: one focal length and one radial term, COLMAP's default)"""
+    camera_model: Literal["auto", "SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"] = "auto"
+    """COLMAP camera model fitted; auto: OPENCV, or SIMPLE_RADIAL (one focal, one radial term) when the OPENCV fit
+    gives non-square pixels"""
     camera_mode: Literal["single", "per-image"] = "single"
     """single: one camera shared by all images (they must have one size); per-image: one camera each"""
     max_image_size: int = 3200

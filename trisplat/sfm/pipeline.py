@@ -36,7 +36,9 @@ from trisplat.sfm.pairs import exhaustive_pairs, loop_pairs, retrieval_similarit
 
 MATCHERS = ("auto", "exhaustive", "sequential")
 CAMERA_MODES = ("single", "per-image")
-CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
+CAMERA_MODELS = ("auto", "SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
+AUTO_FIRST, AUTO_FALLBACK = "OPENCV", "SIMPLE_RADIAL"
+MAX_ASPECT_DEVIATION = 0.03  # |fx / fy - 1| above which an OPENCV fit is refused (real pixels are square)
 REPORT = "poses.json"
 WORK = "distorted"
 FEW_FEATURES = 100  # images with fewer SIFT features than this are named in failure messages as a likely cause
@@ -50,9 +52,11 @@ class PosesOptions:
         successors (plus successors at distances 2^k) and its `loop_neighbours` most similar images elsewhere in the
         sequence (retrieval with a vocabulary built from the capture's own descriptors); 'auto' = exhaustive up to
         `exhaustive_max` photos, sequential for more and for videos.
-    camera_model: COLMAP model estimated (one camera shared by all images with camera_mode 'single'). The default
-        SIMPLE_RADIAL (one focal length, one radial term) is COLMAP's own; OPENCV (fx, fy, k1, k2, p1, p2) fits
-        wide lenses better but, on a synthetic orbit at one height, left fy unconstrained (4.6x the truth).
+    camera_model: COLMAP model estimated (one camera shared by all images with camera_mode 'single'). 'auto' fits
+        OPENCV (fx, fy, k1, k2, p1, p2: phone lenses; on fox it reproduced the given model's intrinsics to 0.03%)
+        and, when the fit gives non-square pixels (|fx/fy - 1| > MAX_ASPECT_DEVIATION: fy is poorly constrained,
+        e.g. on an orbit at one height, where it came out 4.6x the truth), maps again with SIMPLE_RADIAL (one
+        focal length, one radial term: COLMAP's default) from the same matches.
     max_image_size: SIFT runs on images downscaled to this longest side, pixels (the mapping and undistortion use
         full-size images).
     min_registered: fail (naming the images left out) when fewer than this fraction of the images register.
@@ -66,7 +70,7 @@ class PosesOptions:
     exhaustive_max: int = 100
     overlap: int = 10
     loop_neighbours: int = 5
-    camera_model: str = "SIMPLE_RADIAL"
+    camera_model: str = "auto"
     camera_mode: str = "single"
     max_image_size: int = 3200
     max_features: int = 8192
@@ -201,7 +205,7 @@ def _extract(db: Path, image_dir: Path, names: list[str], opts: PosesOptions, pr
     import pycolmap
 
     reader = pycolmap.ImageReaderOptions()
-    reader.camera_model = opts.camera_model
+    reader.camera_model = AUTO_FIRST if opts.camera_model == "auto" else opts.camera_model
     mode = pycolmap.CameraMode.SINGLE if opts.camera_mode == "single" else pycolmap.CameraMode.PER_IMAGE
     ext = pycolmap.FeatureExtractionOptions()
     ext.max_image_size = opts.max_image_size
@@ -293,6 +297,30 @@ def _map(db: Path, image_dir: Path, work: Path, n_images: int, seed: int, progre
         bar.close()
     shutil.rmtree(tmp, ignore_errors=True)
     return list(models.values())
+
+
+def _worst_aspect(rec) -> float:
+    """fx / fy of the camera whose ratio is farthest from 1 (1 for single-focal models)."""
+    worst = 1.0
+    for cam in rec.cameras.values():
+        fx, fy = cam.focal_length_x, cam.focal_length_y
+        if fy > 0 and abs(fx / fy - 1.0) > abs(worst - 1.0):
+            worst = fx / fy
+    return worst
+
+
+def _set_camera_model(db: Path, model: str) -> None:
+    """Switch every camera of the database to `model`, from its initial focal length and principal point."""
+    import pycolmap
+
+    with pycolmap.Database.open(str(db)) as d:
+        for cam in d.read_all_cameras():
+            n_extra = {"SIMPLE_PINHOLE": 0, "SIMPLE_RADIAL": 1, "RADIAL": 2}[model]
+            params = [cam.mean_focal_length(), cam.principal_point_x, cam.principal_point_y] + [0.0] * n_extra
+            new = pycolmap.Camera(model=model, width=cam.width, height=cam.height, params=params,
+                                  camera_id=cam.camera_id)
+            new.has_prior_focal_length = cam.has_prior_focal_length
+            d.update_camera(new)
 
 
 def _undistort(model_dir: Path, image_dir: Path, names: list[str], out: Path, progress: bool) -> None:
@@ -413,7 +441,8 @@ def run_poses(source: str | Path, out: str | Path, options: PosesOptions | None 
         names = [p.name for p in check.images]
         times["input"] = time.perf_counter() - t
 
-        t = head(f"SIFT features ({opts.camera_model}, {opts.camera_mode} camera)")
+        first_model = AUTO_FIRST if opts.camera_model == "auto" else opts.camera_model
+        t = head(f"SIFT features ({first_model}, {opts.camera_mode} camera)")
         db = work / "database.db"
         feats = _extract(db, image_dir, names, opts, progress)
         say("      focal: " + ("from EXIF" if feats["exif"] else
@@ -441,6 +470,16 @@ def run_poses(source: str | Path, out: str | Path, options: PosesOptions | None 
         needed = max(MIN_IMAGES, math.ceil(opts.min_registered * len(names)))
         t = head("incremental mapping")
         models = _map(db, image_dir, work, len(names), opts.seed, progress)
+        if opts.camera_model == "auto" and models:
+            best = max(models, key=lambda r: (r.num_reg_images(), r.num_points3D()))
+            aspect = _worst_aspect(best)
+            if abs(aspect - 1.0) > MAX_ASPECT_DEVIATION:
+                note = (f"the {AUTO_FIRST} fit gave fx/fy = {aspect:.3f} (non-square pixels: fy is poorly "
+                        f"constrained by these views); mapped again with {AUTO_FALLBACK}")
+                say(f"      {note}")
+                warnings.append(note)
+                _set_camera_model(db, AUTO_FALLBACK)
+                models = _map(db, image_dir, work, len(names), opts.seed, progress)
         times["mapping"] = time.perf_counter() - t
         if not models:
             raise _failure(0, names, set(), feats["features"], per_image, needed, source, work)
