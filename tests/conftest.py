@@ -22,3 +22,30 @@ def shared_data(name: str) -> Path:
 @pytest.fixture
 def data_dir():
     return shared_data("")
+
+
+# Fixtures of the SfM tests (tests/sfm): one small synthetic capture, textured scene with known cameras along an arc,
+# made once. They live here, not in tests/sfm/conftest.py: a second module named `conftest` would shadow this one for
+# the test modules that import `shared_data` from it.
+SFM_FRAMES = 16
+
+
+@pytest.fixture(scope="session")
+def synthetic_frames(tmp_path_factory):
+    """(folder of SFM_FRAMES PNG photos 320x240, their Cameras): a 120-degree arc around textured boxes."""
+    from tests.sfm.sfm_scene import path_cameras, render_frames, textured_scene
+
+    folder = tmp_path_factory.mktemp("sfm_photos")
+    cams = path_cameras(SFM_FRAMES)
+    render_frames(textured_scene(), cams, folder)
+    return folder, cams
+
+
+@pytest.fixture(scope="session")
+def synthetic_capture(synthetic_frames, tmp_path_factory):
+    """`run_poses` on the synthetic photos: (report, capture folder)."""
+    from trisplat.sfm import run_poses
+
+    out = tmp_path_factory.mktemp("sfm_capture") / "capture"
+    report = run_poses(synthetic_frames[0], out, progress=False, log=lambda m: None)
+    return report, out

@@ -84,6 +84,10 @@ def test_sphere_rolls_into_exported_valley_instead_of_falling_through(tmp_path):
     export_mesh(tmp_path / "valley.glb", positions, faces, colours)
     p, f, _ = load_mesh(tmp_path / "valley.glb")
     np.testing.assert_array_equal(f, faces)
+    # glTF is Y-up; MuJoCo is Z-up: an importer maps glTF (x, y, z) to (x, -z, y), as Blender's does
+    assert np.allclose(p[:, 1], positions[:, 2], atol=1e-6), "the GLB is not Y-up"
+    p = np.column_stack([p[:, 0], -p[:, 2], p[:, 1]])
+    np.testing.assert_allclose(p, positions, atol=1e-6)
     assets, geoms = _static_prisms(p.astype(np.float64), f)
     # dropped over the slope, off-centre: it must land on the surface and roll down to the bottom of the valley
     pos, speed = _simulate(assets, geoms, (0.4, 0.3, 0.8))

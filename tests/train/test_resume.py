@@ -226,7 +226,7 @@ def test_model_and_mesh_files_are_written_atomically(tmp_path, monkeypatch, suff
             save_model_ply(target, TriangleScene(torch.tensor(p), torch.zeros(3, 1, 3), torch.zeros(3),
                                                  torch.tensor(faces), 0.0), np.eye(4))
         else:
-            export_mesh(target, p, faces, np.full((3, 3), 0.5))
+            export_mesh(target, p, faces, np.full((3, 3), 0.5), up=None)  # keep the frame (GLB: Y-up by default)
 
     write(pos)
     before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}  # an OBJ brings its MTL
