@@ -14,22 +14,29 @@ SUITES: dict[str, tuple[str, str]] = {
     "losses": ("trisplat.bench.losses", "training step kernels (losses, SH colour): fused Numba vs their torch twins"),
     "poses": ("trisplat.bench.poses", "structure from motion on a capture's photos vs its own model (fox)"),
 }
+# run by name only, not by `all`: tens of minutes on the full sequence
+LONG_SUITES: dict[str, tuple[str, str]] = {
+    "slam": ("trisplat.bench.slam", "trisplat slam vs Open3D odometry + TSDF on an RGB-D capture: ATE, time, mesh "
+             "Chamfer (needs open3d-cpu; long: not part of 'all')"),
+}
 DEFAULT_OUT = Path("bench_results")
 INDEX_MD = "index.md"
 
 
 def _usage() -> str:
-    lines = ["usage: trisplat bench {render,train,mesh,losses,poses,all} [options]   (trisplat bench SUITE --help for its options)",
+    lines = ["usage: trisplat bench {render,train,mesh,losses,poses,slam,all} [options]   "
+             "(trisplat bench SUITE --help for its options)",
              "", "Each suite writes <name>.json (with machine, versions, commit) and <name>.md into --out "
              f"(default {DEFAULT_OUT}/).", "", "suites:"]  # fmt: skip
-    lines += [f"  {name:<8} {desc}" for name, (_, desc) in SUITES.items()]
-    lines.append(f"  {'all':<8} every suite in turn with the same options; also writes --out/{INDEX_MD}")
+    lines += [f"  {name:<8} {desc}" for name, (_, desc) in {**SUITES, **LONG_SUITES}.items()]
+    lines.append(f"  {'all':<8} every suite in turn with the same options, except {', '.join(LONG_SUITES)} (long: run "
+                 f"it by name); also writes --out/{INDEX_MD}")
     return "\n".join(lines)
 
 
 def _load(name: str):
     """The suite's module, or None (with a message on stderr) when it is not part of this installation."""
-    module = SUITES[name][0]
+    module = {**SUITES, **LONG_SUITES}[name][0]
     try:
         return importlib.import_module(module)
     except ModuleNotFoundError as exc:
@@ -82,7 +89,7 @@ def main(argv: list[str]) -> int:
         if index is not None:
             print(f"index: {index}")
         return status
-    if name not in SUITES:
+    if name not in SUITES and name not in LONG_SUITES:
         print(f"trisplat bench: unknown suite {name!r}\n\n{_usage()}", file=sys.stderr)
         return 2
     mod = _load(name)

@@ -2,8 +2,10 @@
 term) chained into a trajectory, and TSDF fusion of the same frames into a mesh; also a TSDF mesh fused
 with the capture's reference poses (the geometry reference both systems' meshes are compared with).
 
-Open3D is a benchmark dependency only (`pip install open3d-cpu==0.20.0`); nothing in trisplat imports it at run
-time. Usage: python -m trisplat.slam.open3d_baseline CAPTURE --out DIR [--downscale 2] [--max-frames N]
+Open3D is a benchmark dependency only (`pip install open3d-cpu==0.20.0`, the `bench` extra); nothing in trisplat
+imports it at run time. Frames are chosen as `trisplat slam` chooses them (every stride-th, then the first max-frames).
+Usage: python -m trisplat.slam.open3d_baseline CAPTURE --out DIR [--downscale 2] [--max-frames N] [--stride S]
+(`trisplat bench slam` runs it beside `trisplat slam`).
 """
 from __future__ import annotations
 
@@ -18,21 +20,65 @@ from trisplat.data.rgbd_stream import load_frame, open_stream
 from trisplat.slam.trajectory import ate_rmse, write_tum_trajectory
 
 VOXEL_M = 0.01  # TSDF voxel edge (metres)
-SDF_TRUNC_M = 0.04  # TSDF truncation distance (metres)
+SDF_TRUNC_M = 0.04  # TSDF truncation distance (metres): 4 voxels
 DEPTH_TRUNC_M = 4.0  # depth beyond this is not used (metres)
 MAX_VOXELS_PER_SIDE = 400  # the uniform TSDF grid is at most this many voxels per side (coarser voxels beyond)
 
 
+MISSING_OPEN3D = ("the Open3D baseline needs open3d: pip install open3d-cpu==0.20.0 (or pip install -e '.[bench]'; "
+                  "a benchmark-only dependency)")
+
+
 def _o3d():
+    """The open3d module, imported lazily; ImportError naming `pip install open3d-cpu` when it is not installed."""
     try:
         import open3d as o3d
     except ImportError:
-        raise ImportError("the Open3D baseline needs open3d: pip install open3d-cpu==0.20.0 (a benchmark-only "
-                          "dependency)") from None
+        raise ImportError(MISSING_OPEN3D) from None
     return o3d
 
 
-def _bounds(frames, c2ws, K, stride: int = 8, every: int = 10):
+def frame_ids(n_frames: int, max_frames: int = 0, stride: int = 1) -> list[int]:
+    """The capture frames used: every stride-th, then the first max_frames (0 = all), as trisplat.slam.system."""
+    ids = list(range(0, n_frames, max(1, stride)))
+    return ids[:max_frames] if max_frames else ids
+
+
+def _intrinsic(o3d, stream, downscale: int):
+    W, H = stream.size_at(downscale)
+    K = stream.K_at(downscale)
+    # Open3D puts pixel centres at integers; ours are at +0.5 (docs/conventions.md).
+    return o3d.camera.PinholeCameraIntrinsic(W, H, K[0, 0], K[1, 1], K[0, 2] - 0.5, K[1, 2] - 0.5), K
+
+
+def _load_frames(stream, ids, downscale: int) -> list:
+    frames = []
+    for i in ids:
+        rgb, depth = load_frame(stream, i, downscale)
+        frames.append((np.ascontiguousarray((rgb * 255 + 0.5).astype(np.uint8)), np.ascontiguousarray(depth)))
+    return frames
+
+
+def reference_tsdf_mesh(capture: Path, out_ply: Path, downscale: int = 2, max_frames: int = 0, stride: int = 1,
+                        depth_scale: float | None = None, voxel_m: float = VOXEL_M) -> dict:
+    """TSDF mesh of the selected frames fused at the capture's reference poses (frames without one are skipped),
+    written to out_ply: the geometry reference both SLAM meshes are compared with. Returns its facts."""
+    o3d = _o3d()
+    stream = open_stream(capture, depth_scale=depth_scale)
+    ids = [i for i in frame_ids(len(stream), max_frames, stride) if stream.frames[i].reference_c2w is not None]
+    if not ids:
+        raise ValueError(f"{capture}: no reference poses among the selected frames: no reference mesh")
+    t0 = time.time()
+    intrinsic, K = _intrinsic(o3d, stream, downscale)
+    rm = tsdf_mesh(o3d, _load_frames(stream, ids, downscale), [stream.frames[i].reference_c2w for i in ids],
+                   intrinsic, K, voxel_m)
+    Path(out_ply).parent.mkdir(parents=True, exist_ok=True)
+    o3d.io.write_triangle_mesh(str(out_ply), rm)
+    return {"path": str(out_ply), "frames": len(ids), "faces": len(rm.triangles), "vertices": len(rm.vertices),
+            "voxel_m": voxel_m, "seconds": time.time() - t0}
+
+
+def _bounds(frames, c2ws, K, stride: int = 8, every: int = 10, sdf_trunc: float = SDF_TRUNC_M):
     """Box [2,3] (world, metres) of the depth points of every `every`-th frame under the given poses."""
     lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
     for (_, depth), c2w in list(zip(frames, c2ws))[::every]:
@@ -45,19 +91,20 @@ def _bounds(frames, c2ws, K, stride: int = 8, every: int = 10):
         p = np.stack([(u + 0.5 - K[0, 2]) / K[0, 0] * z, (v + 0.5 - K[1, 2]) / K[1, 1] * z, z], 1)
         p = p @ c2w[:3, :3].T + c2w[:3, 3]
         lo, hi = np.minimum(lo, p.min(0)), np.maximum(hi, p.max(0))
-    return np.stack([lo - 2 * SDF_TRUNC_M, hi + 2 * SDF_TRUNC_M])
+    return np.stack([lo - 2 * sdf_trunc, hi + 2 * sdf_trunc])
 
 
-def tsdf_mesh(o3d, frames, c2ws, intrinsic, K):
+def tsdf_mesh(o3d, frames, c2ws, intrinsic, K, voxel_m: float = VOXEL_M):
     """Fuse (rgb uint8, depth float32 metres) frames at camera-to-world poses; returns an Open3D TriangleMesh.
 
     A UniformTSDFVolume over the frames' box: with open3d-cpu 0.20.0 on the benchmark machine, ScalableTSDFVolume
     and the tensor VoxelBlockGrid both returned empty meshes even for a single frame at the identity pose."""
-    box = _bounds(frames, c2ws, K)
+    sdf_trunc = SDF_TRUNC_M * voxel_m / VOXEL_M
+    box = _bounds(frames, c2ws, K, sdf_trunc=sdf_trunc)
     length = float((box[1] - box[0]).max())
-    res = int(min(MAX_VOXELS_PER_SIDE, np.ceil(length / VOXEL_M)))
+    res = int(min(MAX_VOXELS_PER_SIDE, np.ceil(length / voxel_m)))
     vol = o3d.pipelines.integration.UniformTSDFVolume(
-        length=length, resolution=res, sdf_trunc=SDF_TRUNC_M,
+        length=length, resolution=res, sdf_trunc=sdf_trunc,
         color_type=o3d.pipelines.integration.TSDFVolumeColorType.RGB8, origin=box[0].reshape(3, 1))
     for (rgb, depth), c2w in zip(frames, c2ws):
         rgbd = o3d.geometry.RGBDImage.create_from_color_and_depth(
@@ -73,20 +120,20 @@ def largest_component_fraction(o3d, mesh) -> float:
     return float(counts.max() / counts.sum()) if counts.size else 0.0
 
 
-def run(capture: Path, out: Path, downscale: int = 2, max_frames: int = 0, reference_mesh: bool = True) -> dict:
+def run(capture: Path, out: Path, downscale: int = 2, max_frames: int = 0, reference_mesh: bool = True,
+        stride: int = 1, depth_scale: float | None = None, log=print, voxel_m: float = VOXEL_M) -> dict:
+    """Odometry + TSDF over the selected frames; writes OUT/trajectory.txt (TUM), OUT/mesh.ply, OUT/metrics.json
+    (and OUT/reference_tsdf_mesh.ply with reference_mesh); returns the metrics dict."""
     o3d = _o3d()
+    out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    stream = open_stream(capture)
-    n = len(stream) if not max_frames else min(max_frames, len(stream))
+    stream = open_stream(capture, depth_scale=depth_scale)
+    ids = frame_ids(len(stream), max_frames, stride)
+    n = len(ids)
     W, H = stream.size_at(downscale)
-    K = stream.K_at(downscale)
-    # Open3D puts pixel centres at integers; ours are at +0.5 (docs/conventions.md).
-    intrinsic = o3d.camera.PinholeCameraIntrinsic(W, H, K[0, 0], K[1, 1], K[0, 2] - 0.5, K[1, 2] - 0.5)
+    intrinsic, K = _intrinsic(o3d, stream, downscale)
     t_load = time.time()
-    frames = []
-    for i in range(n):
-        rgb, depth = load_frame(stream, i, downscale)
-        frames.append((np.ascontiguousarray((rgb * 255 + 0.5).astype(np.uint8)), np.ascontiguousarray(depth)))
+    frames = _load_frames(stream, ids, downscale)
     load_s = time.time() - t_load
 
     t0 = time.time()
@@ -115,24 +162,24 @@ def run(capture: Path, out: Path, downscale: int = 2, max_frames: int = 0, refer
         c2w.append(c2w[-1] @ T)
         prev = cur
         if (k + 1) % 50 == 0:
-            print(f"odometry frame {k + 1}/{n}  {(k + 1) / (time.time() - t0):.1f} fps", flush=True)
+            log(f"odometry frame {k + 1}/{n}  {(k + 1) / (time.time() - t0):.1f} fps", flush=True)
     odo_s = time.time() - t0
     t1 = time.time()
-    mesh = tsdf_mesh(o3d, frames, c2w, intrinsic, K)
+    mesh = tsdf_mesh(o3d, frames, c2w, intrinsic, K, voxel_m)
     tsdf_s = time.time() - t1
-    stamps = [f.stamp if f.stamp is not None else float(i) for i, f in enumerate(stream.frames[:n])]
+    stamps = [stream.frames[i].stamp if stream.frames[i].stamp is not None else float(i) for i in ids]
     write_tum_trajectory(out / "trajectory.txt", stamps, c2w)
     o3d.io.write_triangle_mesh(str(out / "mesh.ply"), mesh)
     res = {
-        "capture": str(capture), "frames": n, "resolution": [W, H], "odometry_failures": failures,
+        "capture": str(capture), "frames": n, "stride": max(1, stride), "resolution": [W, H], "odometry_failures": failures,
         "load_seconds": load_s, "odometry_seconds": odo_s, "tsdf_seconds": tsdf_s, "seconds": odo_s + tsdf_s,
         "mesh": {"faces": len(mesh.triangles), "vertices": len(mesh.vertices),
                  "largest_component_fraction": largest_component_fraction(o3d, mesh)},
-        "tsdf": {"volume": "UniformTSDFVolume", "voxel_m": VOXEL_M, "sdf_trunc_m": SDF_TRUNC_M,
+        "tsdf": {"volume": "UniformTSDFVolume", "voxel_m": voxel_m, "sdf_trunc_m": SDF_TRUNC_M * voxel_m / VOXEL_M,
                  "depth_trunc_m": DEPTH_TRUNC_M},
         "open3d": o3d.__version__,
     }
-    ref = [f.reference_c2w for f in stream.frames[:n]]
+    ref = [stream.frames[i].reference_c2w for i in ids]
     have = [k for k, r in enumerate(ref) if r is not None]
     if len(have) >= 3:
         rmse, err = ate_rmse(np.array([c2w[k] for k in have]), np.array([ref[k] for k in have]))
@@ -140,12 +187,12 @@ def run(capture: Path, out: Path, downscale: int = 2, max_frames: int = 0, refer
                       "alignment": "rigid SE(3) (Horn/Umeyama, no scale) of estimated onto reference camera centres"}
         if reference_mesh:
             t2 = time.time()
-            rm = tsdf_mesh(o3d, [frames[k] for k in have], [ref[k] for k in have], intrinsic, K)
+            rm = tsdf_mesh(o3d, [frames[k] for k in have], [ref[k] for k in have], intrinsic, K, voxel_m)
             o3d.io.write_triangle_mesh(str(out / "reference_tsdf_mesh.ply"), rm)
             res["reference_tsdf_mesh"] = {"path": str(out / "reference_tsdf_mesh.ply"), "faces": len(rm.triangles),
                                           "seconds": time.time() - t2}
     (out / "metrics.json").write_text(json.dumps(res, indent=2))
-    print(json.dumps(res, indent=2))
+    log(json.dumps(res, indent=2))
     return res
 
 
@@ -156,9 +203,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--downscale", type=int, default=2)
     ap.add_argument("--max-frames", type=int, default=0)
+    ap.add_argument("--stride", type=int, default=1)
+    ap.add_argument("--depth-scale", type=float, default=None)
     ap.add_argument("--no-reference-mesh", action="store_true")
     a = ap.parse_args(argv)
-    run(a.capture, a.out, a.downscale, a.max_frames, not a.no_reference_mesh)
+    run(a.capture, a.out, a.downscale, a.max_frames, not a.no_reference_mesh, a.stride, a.depth_scale)
     return 0
 
 

@@ -1,0 +1,231 @@
+"""`trisplat bench slam`: `trisplat slam` beside the Open3D baseline (RGB-D odometry + TSDF) on the same frames.
+
+Both methods run on the same frames of one RGB-D capture (every --stride-th, the first --max-frames, at
+1/--downscale): `trisplat slam` through its Python entry (trisplat.commands.slam.main, options after `--` are passed
+to it verbatim, e.g. `-- --slam.final-iters 50`), then trisplat.slam.open3d_baseline (frame-to-frame hybrid RGB-D
+odometry chained into a trajectory, TSDF fusion into a mesh). Reported per method: ATE RMSE / max (camera centres,
+rigid SE(3) alignment onto the reference poses, no scale), wall time of the whole method (loading, tracking,
+mapping, meshing, trisplat's held-out evaluation), frames/s (= frames / wall), mesh faces and the share of faces in
+the largest vertex-connected piece (trisplat.mesh.stats), the Chamfer distance (trisplat.eval.geometry: mean of the
+two mean nearest-sample distances, metres) and F-score between the method's mesh and a TSDF mesh fused from the same
+frames at the reference poses (each mesh moved into the reference's world by the rigid alignment of its whole
+poses, rotations included, onto the reference poses), and
+trisplat's held-out PSNR / depth L1 (from its metrics.json). The 1-minute load average before and after each method
+is recorded: the machine may be shared.
+
+Open3D is a benchmark dependency (`pip install open3d-cpu`, or the `bench` extra); this suite stops at once, naming
+it, when it is not installed. The whole 400-frame sequence at half resolution takes tens of minutes on 2 cores, so
+`trisplat bench all` does not run this suite.
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import tyro
+
+from trisplat.bench.common import BenchTable
+
+DEFAULT_CAPTURE = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "sevenscenes_rgbd"
+METHODS = ("trisplat", "open3d")
+COLUMNS = ["method", "frames", "resolution", "ATE RMSE m", "ATE max m", "wall s", "frames/s", "mesh faces",
+           "largest component", "Chamfer m", "accuracy m", "completeness m", "F-score", "held-out PSNR",
+           "held-out depth L1 m", "load before", "load after"]  # fmt: skip
+
+
+@dataclass
+class SlamBenchArgs:
+    """`trisplat slam` and the Open3D RGB-D odometry + TSDF baseline on the same frames of an RGB-D capture with
+    reference poses: ATE, time, mesh connectivity and Chamfer to a reference-pose TSDF mesh. Options after `--` go
+    to `trisplat slam` unchanged (e.g. `-- --slam.final-iters 50`). Not part of `trisplat bench all` (long)."""
+
+    capture: Path = DEFAULT_CAPTURE
+    """RGB-D capture with reference poses (default ../shared/data/sevenscenes_rgbd: 400 frames 640x480)"""
+    out: Path = Path("bench_results")
+    """folder for slam.json, slam.md, slam_details.json; the runs go to OUT/slam_trisplat/ and OUT/slam_open3d/, the
+    reference mesh to OUT/slam_reference_tsdf.ply"""
+    downscale: int = 2
+    """process frames at 1/downscale of the capture's resolution (both methods; trisplat's --slam.downscale)"""
+    max_frames: int = 0
+    """use the first this-many selected frames (0 = all; trisplat's --slam.max-frames)"""
+    stride: int = 1
+    """use every stride-th frame (trisplat's --slam.stride)"""
+    depth_scale: float | None = None
+    """metres per raw depth unit (default per capture format)"""
+    methods: tuple[str, ...] = METHODS
+    """which to run: trisplat, open3d"""
+    chamfer_samples: int = 200_000
+    """points sampled on each mesh for the Chamfer distance and F-score"""
+    tsdf_voxel: float = 0.01
+    """TSDF voxel edge (metres) of the Open3D baseline's mesh and of the reference mesh (truncation 4 voxels; at most
+    400 voxels a side, coarser beyond)"""
+
+
+def _split(argv: list[str]) -> tuple[list[str], list[str]]:
+    """(bench options, options passed through to `trisplat slam`): the latter are what follows a lone `--`."""
+    if "--" in argv:
+        k = argv.index("--")
+        return argv[:k], argv[k + 1:]
+    return argv, []
+
+
+def pose_alignment(est_c2w: np.ndarray, ref_c2w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rigid (R [3,3], t [3]) taking the estimate's world into the reference's, from whole poses: R the rotation
+    nearest (chordal L2) to sum_i R_ref_i R_est_i^T, t the mean of c_ref_i - R c_est_i. Unlike the centre-only ATE
+    alignment it is well determined on short, nearly straight paths (where a rotation about the path's direction
+    hardly moves the centres but swings a scene metres away)."""
+    M = np.einsum("nij,nkj->ik", ref_c2w[:, :3, :3], est_c2w[:, :3, :3])
+    U, _, Vt = np.linalg.svd(M)
+    R = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+    return R, (ref_c2w[:, :3, 3] - est_c2w[:, :3, 3] @ R.T).mean(0)
+
+
+def _aligned_mesh(mesh_path: Path, est_c2w: np.ndarray, ref_c2w: np.ndarray):
+    """The mesh as a trisplat.eval.geometry.Surface moved into the reference's world by pose_alignment, or None when
+    the file has no faces."""
+    from trisplat.eval.geometry import Surface, load_surface
+
+    if not mesh_path.is_file():
+        return None
+    try:
+        s = load_surface(mesh_path)
+    except ValueError:  # an empty mesh (no vertices)
+        return None
+    if not s.is_mesh:
+        return None
+    R, t = pose_alignment(est_c2w, ref_c2w)
+    return Surface(np.asarray(s.vertices, np.float64) @ R.T + t, np.asarray(s.faces))
+
+
+def score_run(run_dir: Path, ref_c2w: list, reference, samples: int) -> dict:
+    """ATE, mesh statistics and geometry metrics of one method's RUN (trajectory.txt + mesh.ply)."""
+    from trisplat.eval.geometry import compare_surfaces
+    from trisplat.mesh.stats import mesh_statistics
+    from trisplat.slam.trajectory import ate_rmse, read_tum_trajectory
+
+    _, est = read_tum_trajectory(run_dir / "trajectory.txt")
+    if len(est) != len(ref_c2w):
+        raise ValueError(f"{run_dir / 'trajectory.txt'}: {len(est)} poses for {len(ref_c2w)} frames")
+    have = [k for k, r in enumerate(ref_c2w) if r is not None]
+    out: dict = {"ate": None, "mesh": None, "geometry": None}
+    if len(have) < 3:
+        return out
+    e, r = est[have], np.array([ref_c2w[k] for k in have])
+    rmse, err = ate_rmse(e, r)
+    out["ate"] = {"rmse_m": rmse, "max_m": float(err.max()), "median_m": float(np.median(err)), "frames": len(have)}
+    surf = _aligned_mesh(run_dir / "mesh.ply", e, r)
+    if surf is None:
+        out["mesh"] = {"num_faces": 0, "largest_component_fraction": None}
+        return out
+    out["mesh"] = mesh_statistics(surf.vertices, surf.faces, check_self_intersections=False).to_dict()
+    if reference is not None and surf.is_mesh:
+        out["geometry"] = compare_surfaces(surf, reference, samples=samples).to_dict()
+    return out
+
+
+def _run_trisplat(args: SlamBenchArgs, run_dir: Path, extra: list[str]) -> dict:
+    from trisplat.commands.slam import main as slam_main
+
+    argv = [str(args.capture), "--out", str(run_dir), "--slam.downscale", str(args.downscale),
+            "--slam.max-frames", str(args.max_frames), "--slam.stride", str(args.stride)]
+    if args.depth_scale is not None:
+        argv += ["--depth-scale", str(args.depth_scale)]
+    argv += extra
+    print("trisplat slam " + " ".join(argv), flush=True)
+    rc = slam_main(argv)
+    if rc:
+        raise RuntimeError(f"trisplat slam exited with status {rc}")
+    return json.loads((run_dir / "metrics.json").read_text())
+
+
+def _run_open3d(args: SlamBenchArgs, run_dir: Path) -> dict:
+    from trisplat.slam import open3d_baseline
+
+    return open3d_baseline.run(args.capture, run_dir, args.downscale, args.max_frames, reference_mesh=False,
+                               stride=args.stride, depth_scale=args.depth_scale, log=lambda *a, **k: None,
+                               voxel_m=args.tsdf_voxel)
+
+
+def main(argv: list[str]) -> int:
+    own, extra = _split(list(argv))
+    args = tyro.cli(SlamBenchArgs, args=own, prog="trisplat bench slam", description=__doc__)
+    unknown = [m for m in args.methods if m not in METHODS]
+    if unknown or not args.methods:
+        raise ValueError(f"--methods: {unknown or 'none given'}; choose from {', '.join(METHODS)}")
+    from trisplat.slam import open3d_baseline
+
+    try:  # the reference mesh and the baseline need Open3D: stop before the long trisplat run, not after it
+        open3d_baseline._o3d()
+    except ImportError as exc:
+        print(f"trisplat bench slam: {exc}", file=sys.stderr)
+        return 2
+    from trisplat.data.rgbd_stream import open_stream
+    from trisplat.eval.geometry import load_surface
+
+    stream = open_stream(args.capture, depth_scale=args.depth_scale)
+    ids = open3d_baseline.frame_ids(len(stream), args.max_frames, args.stride)
+    ref_c2w = [stream.frames[i].reference_c2w for i in ids]
+    if sum(r is not None for r in ref_c2w) < 3:
+        raise ValueError(f"{args.capture}: fewer than 3 of the {len(ids)} selected frames have reference poses: "
+                         "nothing to score against")
+    W, H = stream.size_at(args.downscale)
+    args.out.mkdir(parents=True, exist_ok=True)
+
+    print(f"reference: TSDF of {len(ids)} frames at the reference poses", flush=True)
+    ref_ply = args.out / "slam_reference_tsdf.ply"
+    ref_info = open3d_baseline.reference_tsdf_mesh(args.capture, ref_ply, args.downscale, args.max_frames,
+                                                   args.stride, args.depth_scale, args.tsdf_voxel)
+    reference = load_surface(ref_ply) if ref_info["faces"] else None
+
+    table = BenchTable("slam", COLUMNS)
+    details: dict = {"capture": str(args.capture), "frames": len(ids), "stride": args.stride,
+                     "downscale": args.downscale, "resolution": [W, H], "trisplat_slam_extra_args": extra,
+                     "reference_tsdf_mesh": ref_info, "methods": {}}
+    for method in args.methods:
+        run_dir = args.out / f"slam_{method}"
+        if run_dir.exists():
+            shutil.rmtree(run_dir)  # a fresh run: no stale checkpoint or outputs
+        print(f"== {method}: {len(ids)} frames at {W}x{H}", flush=True)
+        load0 = os.getloadavg()[0]
+        t0, c0 = time.perf_counter(), time.process_time()
+        metrics = _run_trisplat(args, run_dir, extra) if method == "trisplat" else _run_open3d(args, run_dir)
+        wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+        load1 = os.getloadavg()[0]
+        scores = score_run(run_dir, ref_c2w, reference, args.chamfer_samples)
+        ate, mesh, geo = scores["ate"] or {}, scores["mesh"] or {}, scores["geometry"] or {}
+        held = metrics.get("held_out") or {}
+        row = [method, len(ids), f"{W}x{H}", ate.get("rmse_m"), ate.get("max_m"), wall, len(ids) / max(wall, 1e-9),
+               mesh.get("num_faces"), mesh.get("largest_component_fraction"), geo.get("chamfer"),
+               geo.get("accuracy"), geo.get("completeness"), geo.get("fscore"), held.get("psnr"),
+               held.get("depth_l1_m"), load0, load1]
+        table.add(*row)
+        details["methods"][method] = {"wall_seconds": wall, "cpu_seconds": cpu, "load_before": load0,
+                                      "load_after": load1, "run_dir": str(run_dir), "metrics": metrics, **scores}
+        print(dict(zip(table.columns, row)), flush=True)
+
+    thr = next((m["geometry"]["threshold"] for m in details["methods"].values() if m.get("geometry")), None)
+    table.notes.append(
+        f"Capture {args.capture.name}: {len(ids)} frames (stride {args.stride}) at {W}x{H} (1/{args.downscale}). "
+        "ATE: camera centres after the rigid SE(3) alignment (no scale) onto the reference poses. Wall s: the whole "
+        "method (loading, tracking, mapping, meshing; trisplat also its held-out scoring); frames/s = frames / wall s. "
+        "Largest component: share of the mesh's faces in its largest vertex-connected piece (trisplat.mesh.stats). "
+        f"Chamfer / accuracy / completeness (metres) and F-score (threshold {thr if thr is None else f'{thr:.3f} m'}, "
+        "1% of the reference box diagonal) against the TSDF mesh of the same frames fused at the reference poses "
+        f"({ref_info['faces']} faces; voxel {ref_info['voxel_m']} m), each mesh moved by the rigid alignment of "
+        f"its poses (rotations and centres) onto the reference poses, {args.chamfer_samples} samples a side "
+        "(trisplat.eval.geometry); the reference is fused from the same depth maps by the same TSDF as the Open3D "
+        "baseline, which favours the baseline's Chamfer. Held-out: trisplat's frames "
+        "that were not keyframes, rendered at their tracked poses (its metrics.json). Open3D: "
+        "RGB-D odometry (hybrid term) frame to frame + UniformTSDFVolume (trisplat.slam.open3d_baseline). "
+        "Load = 1-minute load average before and after each method (the machine may be shared)."
+        + (f" trisplat slam extra options: `{' '.join(extra)}`." if extra else ""))
+    (args.out / "slam_details.json").write_text(json.dumps(details, indent=2, default=float))
+    md = table.write(args.out, "trisplat bench slam " + " ".join(argv))
+    print(md.read_text())
+    return 0
