@@ -95,3 +95,24 @@ def projected_edge_px(positions: torch.Tensor, faces: torch.Tensor, world_to_cam
                      (t[:, 0] - t[:, 2]).norm(dim=1)], 1).max(1).values
     ok = (z[faces] > near).all(1)
     return torch.where(ok, e, torch.zeros_like(e))
+
+
+def face_adjacency(faces: torch.Tensor) -> torch.Tensor:
+    """int64 [E,2]: the pairs of faces that share an edge (edges shared by exactly two faces; trimesh's
+    face_adjacency, which skips non-manifold edges)."""
+    import trimesh
+
+    pairs = trimesh.graph.face_adjacency(faces.detach().cpu().numpy())
+    return torch.as_tensor(pairs.reshape(-1, 2), dtype=torch.int64, device=faces.device)
+
+
+def normal_smoothness(positions: torch.Tensor, faces: torch.Tensor, pairs: torch.Tensor) -> torch.Tensor:
+    """Mean of 1 - cos(angle) between the normals of faces that share an edge (0 for a flat sheet, 2 for a fold
+    back onto itself): the normal-consistency regulariser of mesh reconstruction (PyTorch3D's
+    mesh_normal_consistency, on faces). positions [V,3], faces int [F,3], pairs int64 [E,2] from `face_adjacency`."""
+    if len(pairs) == 0:
+        return positions.sum() * 0.0
+    tri = positions[faces.long()]
+    n = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    n = n / n.norm(dim=1, keepdim=True).clamp_min(1e-12)
+    return (1.0 - (n[pairs[:, 0]] * n[pairs[:, 1]]).sum(1)).mean()

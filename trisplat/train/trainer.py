@@ -185,6 +185,13 @@ class Trainer:
         for group in self.ts.optimizer.param_groups:
             group["lr"] = lrs[group["name"]] * self.lr_scale
 
+    def _face_pairs(self) -> torch.Tensor:
+        """Faces sharing an edge (for the smoothness term), recomputed whenever the face table changed."""
+        key = (self.ts.faces.data_ptr(), self.ts.num_faces)
+        if getattr(self, "_pairs_key", None) != key:
+            self._pairs, self._pairs_key = losses.face_adjacency(self.ts.faces), key
+        return self._pairs
+
     def _params_finite(self) -> bool:
         return all(_all_finite(v) for v in self.ts.params.values())
 
@@ -213,6 +220,9 @@ class Trainer:
             w2c = torch.as_tensor(cam.world_to_camera, dtype=torch.float32)
             loss = loss + cfg.lambda_vertex_depth * losses.vertex_depth(
                 self.ts.params["positions"], w2c, K, out.depth, out.alpha, cfg.vertex_depth_max_diff)
+        if self.connected and cfg.surface_smoothness > 0:
+            loss = loss + cfg.surface_smoothness * losses.normal_smoothness(
+                self.ts.params["positions"], self.ts.faces, self._face_pairs())
         loss.backward()
         finite = _all_finite(loss) and all(_all_finite(v.grad) for v in self.ts.params.values() if v.grad is not None)
         if not finite:
