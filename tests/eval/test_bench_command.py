@@ -101,6 +101,21 @@ def test_machine_info_records_commit_and_dirtiness(tmp_path, monkeypatch):
         assert json.loads((tmp_path / "x.json").read_text())["machine"]["commit_dirty"] is dirty
 
 
+def test_table_records_the_commit_the_benchmark_started_on(tmp_path, monkeypatch):
+    """A 30-minute bench outlives commits made meanwhile: the table names the code that ran, and the move."""
+    from trisplat.bench import common
+
+    info = common.machine_info()
+    monkeypatch.setattr(common, "machine_info", lambda: {**info, "commit": "aaaaaaa", "commit_dirty": False})
+    t = BenchTable("x", ["a"])
+    t.add(1)
+    monkeypatch.setattr(common, "machine_info", lambda: {**info, "commit": "bbbbbbb", "commit_dirty": False})
+    md = t.write(tmp_path, "cmd").read_text()
+    assert "commit aaaaaaa" in md and "HEAD moved to bbbbbbb during the run" in md
+    saved = json.loads((tmp_path / "x.json").read_text())["machine"]
+    assert saved["commit"] == "aaaaaaa" and saved["commit_at_end"] == "bbbbbbb"
+
+
 def test_train_table_reads_psnr_against_time_from_a_real_history(tmp_path):
     """The curve column of `bench train`: the last test PSNR at or before 25/50/75% of the run's time, from a
     history.jsonl as the trainer writes it (its first line records the initialisation and has no time)."""

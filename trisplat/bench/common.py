@@ -97,6 +97,8 @@ class BenchTable:
     columns: list[str]
     rows: list[list] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
+    started: dict = field(default_factory=lambda: machine_info())
+    """machine facts when the benchmark began: its commit is the code that ran (HEAD may move during a long run)"""
 
     def add(self, *values) -> None:
         if len(values) != len(self.columns):
@@ -118,13 +120,18 @@ class BenchTable:
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
         info = machine_info()
+        if (self.started.get("commit"), self.started.get("commit_dirty")) != (info["commit"], info.get("commit_dirty")):
+            info["commit_at_end"], info["commit_dirty_at_end"] = info["commit"], info.get("commit_dirty")
+        info["commit"], info["commit_dirty"] = self.started.get("commit", "unknown"), self.started.get("commit_dirty")
+        info["started"] = self.started.get("date")
         payload = {"name": self.name, "command": command, "machine": info, "columns": self.columns,
                    "rows": self.rows, "notes": self.notes}
         (out_dir / f"{self.name}.json").write_text(json.dumps(payload, indent=2))
         header = (f"### {self.name}\n\n`{command}` on {info['cpu']} ({info['cores']} cores, numba threads "
                   f"{info['numba_threads']}, torch threads {info['torch_threads']}), commit {info['commit']}"
                   f"{' (with uncommitted changes)' if info.get('commit_dirty') else ''}, "
-                  f"{info['date']}\n\n")
+                  f"{info['started']} to {info['date']}"
+                  f"{'; HEAD moved to ' + info['commit_at_end'] + ' during the run' if 'commit_at_end' in info else ''}\n\n")
         md = out_dir / f"{self.name}.md"
         md.write_text(header + self.markdown() + "\n")
         return md
