@@ -197,20 +197,35 @@ def test_device_choices_resolve_to_torch_devices_and_backends(monkeypatch):
 
 
 @needs_warp
-def test_training_with_the_warp_backend_follows_the_numba_run(tmp_path):
+def test_training_with_the_warp_backend_follows_the_numba_run(tmp_path, monkeypatch):
     """30 steps of the trainer on a tiny generated scene (densify and prune included) with backend='warp' and with
     'numba' from the same start: the per-step losses and the final hard-render PSNR agree closely (the two float32
-    backends differ by rounding only)."""
+    backends differ by rounding only). The warp run's SH colour and photometric loss are the Warp kernels (on CPU
+    tensors too), the numba run's are not."""
     import json
 
     import trimesh
 
     from trisplat import run as layout
     from trisplat.data import load_dataset
+    from trisplat.scene import warp_sh
     from trisplat.scene.init import init_soup
     from trisplat.synth import demo_mesh, write_blender_scene
+    from trisplat.train import warp_ssim
     from trisplat.train.config import make_config
     from trisplat.train.trainer import Trainer
+
+    calls = {"sh": 0, "loss": 0}
+    sh_fwd, loss_fn = warp_sh.WarpSH.forward, warp_ssim.loss_and_grad_warp
+
+    def count(key, fn):
+        def wrapped(*a):
+            calls[key] += 1
+            return fn(*a)
+        return wrapped
+
+    monkeypatch.setattr(warp_sh.WarpSH, "forward", staticmethod(count("sh", sh_fwd)))
+    monkeypatch.setattr(warp_ssim, "loss_and_grad_warp", count("loss", loss_fn))
 
     scene_dir = write_blender_scene(tmp_path / "scene", demo_mesh(), n_train=6, n_test=2, width=40, height=40,
                                     samples_per_pixel=1, n_points=0)
@@ -225,8 +240,14 @@ def test_training_with_the_warp_backend_follows_the_numba_run(tmp_path):
         pts = (np.c_[pts, np.ones(len(pts))] @ data.normalization.T)[:, :3]
         initial, _ = init_soup(pts, np.full((len(pts), 3), 0.5), seed=0, sh_degree=cfg.sh_degree)
         run = tmp_path / backend
+        before = dict(calls)
         Trainer(cfg, data, run, initial=initial, show_progress=False, data_options=opts,
                 data_path=str(scene_dir)).train()
+        used = {k: calls[k] - before[k] for k in calls}
+        if backend == "warp":  # every step (and the warm-up) renders SH colours and takes the loss once
+            assert used["sh"] > 30 and used["loss"] > 30, used
+        else:
+            assert used == {"sh": 0, "loss": 0}, used
         hist = [json.loads(line) for line in (run / layout.HISTORY).read_text().splitlines()]
         res[backend] = (np.array([h["loss"] for h in hist if "loss" in h]),
                         json.loads((run / layout.METRICS).read_text())["psnr"])

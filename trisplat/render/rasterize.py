@@ -17,7 +17,12 @@ def camera_center(world_to_camera: torch.Tensor) -> torch.Tensor:
 
 def _render_view(positions, faces, colors, opacities, sigma, w2c, K, width, height, bg, opts: RenderOptions):
     if colors.ndim == 3:  # SH: evaluate per vertex with the direction camera centre -> vertex
-        colors = eval_sh(colors, positions - camera_center(w2c))
+        if opts.backend == "warp":  # the Warp kernels of the SH colour, on the tensors' device
+            from trisplat.scene.warp_sh import eval_sh_warp
+
+            colors = eval_sh_warp(colors, positions - camera_center(w2c))
+        else:
+            colors = eval_sh(colors, positions - camera_center(w2c))
     s = opts.supersample
     if s > 1:
         K = K.clone()

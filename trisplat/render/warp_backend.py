@@ -30,6 +30,25 @@ def _modules():
     return wp, wk
 
 
+def _warp():
+    """warp, initialised, or ImportError with the install hint (without loading the rasterizer's kernels)."""
+    try:
+        import warp as wp
+    except ImportError as exc:
+        raise ImportError(INSTALL_HINT) from exc
+    wp.init()
+    return wp
+
+
+@contextmanager
+def warp_scope(device: torch.device):
+    """Warp (initialised; ImportError with the install hint without it) with its device set to the torch device's
+    and, for CUDA tensors, its launches on torch's current stream: the context of every Warp launch in trisplat."""
+    wp = _warp()
+    with _scope(wp, torch.device(device)):
+        yield wp
+
+
 def available() -> bool:
     """Whether the Warp backend can be imported here (warp-lang installed)."""
     try:
@@ -251,7 +270,7 @@ def rasterize_hard_warp(vi, near: float, perspective_correct: bool, ss: int) -> 
     """rasterize_hard(..., backend='warp') on validated inputs (render.inputs.ViewInputs): every view, SH evaluated
     per view, supersampled by ss and box-filtered like the Numba path."""
     from trisplat.render.types import downsample
-    from trisplat.scene.sh import eval_sh
+    from trisplat.scene.warp_sh import eval_sh_warp
 
     outs = []
     with torch.no_grad():
@@ -260,7 +279,7 @@ def rasterize_hard_warp(vi, near: float, perspective_correct: bool, ss: int) -> 
             col = vi.colors
             if col.ndim == 3:
                 R, t = w2c[:3, :3], w2c[:3, 3]
-                col = eval_sh(col, vi.positions - (-(R.T @ t)))
+                col = eval_sh_warp(col, vi.positions - (-(R.T @ t)))
             Kb = torch.cat([Kb[:2] * ss, Kb[2:]])
             out = hard_view_warp(vi.positions, vi.faces, col, w2c, Kb, vi.width * ss, vi.height * ss, vi.background,
                                  near, perspective_correct)

@@ -5,13 +5,18 @@ import torch
 import torch.nn.functional as F
 
 
-def photometric(pred: torch.Tensor, gt: torch.Tensor, lambda_dssim: float) -> torch.Tensor:
-    """(1 - lambda) * L1 + lambda * (1 - SSIM) on [H,W,3] images (the fused Numba loss for CPU float32 renders,
-    see `trisplat.train.fused_ssim`; lambda 0 is the plain L1)."""
-    from trisplat.train.fused_ssim import photometric_loss
-
+def photometric(pred: torch.Tensor, gt: torch.Tensor, lambda_dssim: float, backend: str = "numba") -> torch.Tensor:
+    """(1 - lambda) * L1 + lambda * (1 - SSIM) on [H,W,3] images (lambda 0 is the plain L1). backend 'warp': the
+    Warp kernels on the render's device (`trisplat.train.warp_ssim`, CPU or CUDA); otherwise the fused Numba loss
+    for CPU float32 renders (`trisplat.train.fused_ssim`). Other inputs take the torch version of either."""
     if lambda_dssim == 0:
         return (pred - gt).abs().mean()
+    if backend == "warp":
+        from trisplat.train.warp_ssim import photometric_loss_warp
+
+        return photometric_loss_warp(pred, gt, lambda_dssim)
+    from trisplat.train.fused_ssim import photometric_loss
+
     return photometric_loss(pred, gt, lambda_dssim)
 
 

@@ -210,7 +210,7 @@ class Trainer:
         cam = self.data.cameras[idx]
         out = self.render(idx, p, supersample=schedules.supersample(p, cfg))
         gt = self.gt(idx)
-        loss = losses.photometric(out.rgb, gt, cfg.lambda_dssim)
+        loss = losses.photometric(out.rgb, gt, cfg.lambda_dssim, backend=cfg.backend)
         if p < cfg.opacity_penalty_until and cfg.lambda_opacity > 0:
             loss = loss + cfg.lambda_opacity * self.ts.opacities().mean()
         K = torch.as_tensor(cam.K, dtype=torch.float32)
@@ -375,7 +375,8 @@ class Trainer:
                         torch.full((3,), 0.5), 0.5, torch.eye(4),
                         torch.tensor([[16.0, 0, 8], [0, 16.0, 8], [0, 0, 1]]), 16, 16, background=self.background,
                         backend=self.cfg.backend)
-        loss = losses.photometric(out.rgb, torch.full((16, 16, 3), 0.5), self.cfg.lambda_dssim)
+        loss = losses.photometric(out.rgb, torch.full((16, 16, 3), 0.5), self.cfg.lambda_dssim,
+                                  backend=self.cfg.backend)
         (loss + out.depth.sum() + out.normal.sum()).backward()
         return time.perf_counter() - t0
 
