@@ -164,3 +164,35 @@ def test_supersampled_eval_matches_an_antialiased_capture_better(tmp_path):
     png = np.asarray(Image.open(tmp_path / "r" / f"{Path(cam.image_path).stem}.png"), dtype=np.float32) / 255
     rgb = render_view(scene, cam, "hard", data.background, supersample=2)
     np.testing.assert_allclose(png, rgb, atol=1 / 255 + 1e-6)
+
+
+def test_eval_device_flag_cpu_keeps_the_scores_and_cuda_is_refused_without_a_gpu(good_run, tmp_path, capsys,
+                                                                                  monkeypatch):
+    """`trisplat eval --device cpu|auto|cuda`: cpu (the default) scores exactly as an evaluation without the flag
+    (and as render_view on the CPU); auto is cpu where torch sees no GPU; cuda without one is refused before
+    anything is written."""
+    import torch
+
+    monkeypatch.setenv("TRISPLAT_LPIPS_WEIGHTS", str(tmp_path / "missing.npz"))
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    run, data = good_run
+    scores = {}
+    for name, flag in (("default", []), ("cpu", ["--device", "cpu"]), ("auto", ["--device", "auto"])):
+        for mode in ("soft", "hard"):
+            out = tmp_path / f"{name}_{mode}"
+            assert cli_main(["eval", str(run), "--mode", mode, "--out", str(out), "--max-views", "2", *flag]) == 0
+            capsys.readouterr()
+            m = json.loads((out / "metrics.json").read_text())
+            assert "device" not in m  # recorded only for a device other than the CPU
+            scores[name, mode] = [(v["index"], v["psnr"], v["ssim"]) for v in m["views"]]
+    for mode in ("soft", "hard"):
+        assert scores["cpu", mode] == scores["default", mode] == scores["auto", mode]
+        assert len(scores["cpu", mode]) == 2
+    m = evaluate_run(run, "test", "soft", out_dir=tmp_path / "direct", report=False, show_progress=False,
+                     max_views=2, device=torch.device("cpu"))
+    assert [(v.index, v.psnr, v.ssim) for v in m.views] == scores["cpu", "soft"]
+    assert cli_main(["eval", str(run), "--device", "cuda", "--out", str(tmp_path / "gpu")]) == 1
+    assert "no CUDA device" in capsys.readouterr().err
+    assert not (tmp_path / "gpu").exists()
+    with pytest.raises(ValueError, match="device must be one of"):
+        evaluate_run(run, "test", "soft", out_dir=tmp_path / "bad", device="tpu", show_progress=False)

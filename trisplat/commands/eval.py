@@ -33,6 +33,9 @@ class EvalConfig:
     """samples per pixel side (anti-aliasing, 1-4; default: the run's eval_supersample, 1 for older runs)"""
     force: bool = False
     """replace an existing evaluation in the output folder (e.g. the one the training wrote)"""
+    device: Literal["cpu", "cuda", "auto"] = "cpu"
+    """cpu: the run's renderer on the CPU; cuda: the Warp kernels on the GPU (gpu extra and a CUDA build of torch);
+    auto: cuda when both are there"""
 
 
 def main(argv: list[str]) -> int:
@@ -40,13 +43,16 @@ def main(argv: list[str]) -> int:
     from trisplat.eval.report import METRICS_JSON, REPORT_HTML, json_safe
     from trisplat.eval.views import evaluate_run
     from trisplat.io.atomic import refuse_to_overwrite
+    from trisplat.render.warp_backend import resolve_device
     from trisplat.run import open_run
 
     open_run(cfg.run)  # the input first: a folder that is no run is named as such
+    device = resolve_device(cfg.device)  # before anything is written
     out = cfg.out or cfg.run / (f"eval_{cfg.split}" + ("_soft" if cfg.mode == "soft" else ""))
     refuse_to_overwrite([out / METRICS_JSON, out / REPORT_HTML], cfg.force, "write elsewhere with --out DIR")
     m = evaluate_run(cfg.run, cfg.split, cfg.mode, out_dir=cfg.out, lpips_weights=cfg.lpips_weights,
-                     max_views=cfg.max_views, report=cfg.report, supersample=cfg.supersample)  # fmt: skip
+                     max_views=cfg.max_views, report=cfg.report, supersample=cfg.supersample,
+                     device=device)  # fmt: skip
     summary = {k: v for k, v in m.to_dict().items() if k != "views"}
     print(json.dumps(json_safe(summary), indent=2))
     if cfg.report:

@@ -1,6 +1,7 @@
 """Novel-view evaluation of a trained run: render a split, score every view, write metrics.json and report.html."""
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
 
@@ -37,18 +38,33 @@ def eval_supersample(run) -> int:
     return int(run.config.get("eval_supersample", 1))
 
 
+def scene_on(scene, device: torch.device | None):
+    """The TriangleScene with its tensors on `device` (the scene itself when they are there already, or for None)."""
+    if device is None or scene.positions.device == torch.device(device):
+        return scene
+    return dataclasses.replace(scene, positions=scene.positions.to(device), sh=scene.sh.to(device),
+                               opacity_logit=scene.opacity_logit.to(device), faces=scene.faces.to(device))
+
+
 def render_view(scene, camera, mode: str, background, sigma: float | None = None, options: dict | None = None,
-                supersample: int = 1):
+                supersample: int = 1, device: torch.device | str | None = None):
     """Render one camera of a TriangleScene: float32 numpy [H,W,3] in [0,1].
 
     hard: the opaque z-buffer (rasterize_hard); soft: the training renderer at `sigma` with the vertices' opacities.
     Both evaluate the SH colour of each vertex along its view direction. options: RenderOptions fields the run
     trained with (near, tile_size, backend); the hard renderer takes only `near` from them. supersample: each
-    pixel is the mean of s x s samples (anti-aliasing; 1 = one sample at the pixel centre).
+    pixel is the mean of s x s samples (anti-aliasing; 1 = one sample at the pixel centre). device: render with the
+    scene's tensors there (None: where they are); on a CUDA device both renderers use the Warp kernels (a run's
+    'numba' backend runs on the CPU only).
     """
     from trisplat import render
 
     options = dict(options or {})
+    if device is not None:
+        device = torch.device(device)
+        scene = scene_on(scene, device)
+        if device.type == "cuda" and options.get("backend", "numba") == "numba":
+            options["backend"] = "warp"
     w2c = torch.as_tensor(camera.world_to_camera, dtype=torch.float32)
     K = torch.as_tensor(camera.K, dtype=torch.float32)
     bg = torch.as_tensor(np.asarray(background, dtype=np.float32))
@@ -69,14 +85,16 @@ def render_view(scene, camera, mode: str, background, sigma: float | None = None
     return out.rgb.clamp(0.0, 1.0).cpu().numpy().astype(np.float32)
 
 
-def render_shaded(scene, camera, background, near: float = 0.01, supersample: int = 1) -> np.ndarray:
+def render_shaded(scene, camera, background, near: float = 0.01, supersample: int = 1,
+                  device: torch.device | str | None = None) -> np.ndarray:
     """The bare surface of a TriangleScene from `camera`: the opaque z-buffer render (render.rasterize_hard) with
     every face a plain grey lit by a headlight (a light at the camera), so shape shows without colour. float32
     numpy [H,W,3] in [0,1].
 
     A pixel showing a face with unit normal n along the unit ray direction d from the camera gets
     SHADED_ALBEDO * (SHADED_AMBIENT + (1 - SHADED_AMBIENT) * |n . d|) (Lambert, two-sided); empty pixels get
-    `background`. supersample s: shaded at s x s samples per pixel, then averaged (anti-aliased edges).
+    `background`. supersample s: shaded at s x s samples per pixel, then averaged (anti-aliased edges). device:
+    render with the scene's tensors there (None: where they are).
     """
     from trisplat import render
     from trisplat.render.inputs import check_supersample
@@ -85,7 +103,8 @@ def render_shaded(scene, camera, background, near: float = 0.01, supersample: in
     W, H = camera.width * s, camera.height * s
     K = np.asarray(camera.K, dtype=np.float64).copy()
     K[:2] *= s
-    grey = torch.full((scene.positions.shape[0], 3), 0.5)
+    scene = scene_on(scene, device)
+    grey = torch.full((scene.positions.shape[0], 3), 0.5, device=scene.positions.device)
     with torch.no_grad():
         out = render.rasterize_hard(scene.positions, scene.faces.to(torch.int32), grey,
                                     torch.as_tensor(camera.world_to_camera, dtype=torch.float32),
@@ -116,24 +135,30 @@ def evaluate_run(
     report: bool = True,
     show_progress: bool = True,
     supersample: int | None = None,
+    device: torch.device | str = "cpu",
 ) -> SplitMetrics:
     """Render `split` of the run at run_dir, score each view (PSNR, SSIM, LPIPS) and write
     out_dir/metrics.json and out_dir/report.html (out_dir defaults to RUN/eval_<split>; soft mode adds _soft).
 
     LPIPS is None (with a note in the metrics) when the weights file is missing. max_views: evaluate only the first
     N views of the split (quick looks; the metrics say so). supersample: samples per pixel side (default: the
-    run's eval_supersample, eval_supersample(run)); the metrics record it.
+    run's eval_supersample, eval_supersample(run)); the metrics record it. device: 'cpu', 'cuda', 'auto' (as
+    `trisplat eval --device`, resolved by render.warp_backend.resolve_device) or a torch device: where the views
+    are rendered (on a GPU with the Warp kernels); the metrics record a device other than the CPU.
     """
     from trisplat.eval.lpips import load_lpips, lpips
+    from trisplat.render.warp_backend import resolve_device
     from trisplat.run import open_run
 
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
     if split not in SPLITS:
         raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
+    dev = resolve_device(device) if isinstance(device, str) else torch.device(device)
     run = open_run(run_dir)
     out = Path(out_dir) if out_dir is not None else run.path / (f"eval_{split}" + ("_soft" if mode == "soft" else ""))
     scene, _normalization = run.load_model()
+    on_dev = scene_on(scene, dev)
     data = run.load_scene_data()
     indices = [int(i) for i in (data.test_indices if split == "test" else data.train_indices)]
     if not indices:
@@ -160,7 +185,7 @@ def evaluate_run(
     for k, i in enumerate(bar):
         cam = data.cameras[i]
         t0 = time.perf_counter()
-        rgb = render_view(scene, cam, mode, data.background, sigma, options, ss)
+        rgb = render_view(on_dev, cam, mode, data.background, sigma, options, ss, device=dev)
         render_s += time.perf_counter() - t0
         gt = np.asarray(data.load_image(i), dtype=np.float32)
         if gt.shape != rgb.shape:
@@ -170,8 +195,8 @@ def evaluate_run(
         views.append(ViewMetrics(index=i, name=name, psnr=psnr(gt, rgb), ssim=ssim(gt, rgb), lpips=lp))
         bar.set_postfix(psnr=f"{np.mean([v.psnr for v in views]):.2f}")
         if k in shown:
-            surface = render_shaded(scene, cam, data.background, options.get("near", 0.01), ss) if k in shaded \
-                else None
+            surface = render_shaded(on_dev, cam, data.background, options.get("near", 0.01), ss) \
+                if k in shaded else None
             images.append(ViewImages(name=name, gt=gt, render=rgb, shaded=surface))
 
     history = run.history()
@@ -182,6 +207,8 @@ def evaluate_run(
         extra["sigma"] = sigma
     if max_views is not None:
         extra["max_views"] = max_views
+    if dev.type != "cpu":
+        extra["device"] = str(dev)
     metrics = SplitMetrics(split=split, mode=mode, views=views, lpips_note=lpips_note, render_seconds=render_s,
                            extra=extra)  # fmt: skip
     write_metrics(out, metrics)
