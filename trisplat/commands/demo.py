@@ -10,13 +10,14 @@ from typing import Annotated
 
 import tyro
 
-from trisplat.commands.style import CLI_STYLE, NO_DEFAULT_HINT
+from trisplat.commands.style import CLI_STYLE, NO_DEFAULT_HINT, flowing_help, help_description
 
 from trisplat import run as layout
 
 
 PROG = "trisplat demo"
 
+@flowing_help
 @dataclass
 class DemoArgs:
     """Generate a procedural coloured scene (rendered by trimesh's ray caster, an independent renderer), train it
@@ -86,7 +87,7 @@ PSNR {fmt(metrics.get('psnr_1spp', metrics.get('psnr')), 2)} dB);
 
 
 def main(argv: list[str]) -> int:
-    args = tyro.cli(DemoArgs, args=argv, description=DemoArgs.__doc__, prog=PROG, config=CLI_STYLE)
+    args = tyro.cli(DemoArgs, args=argv, description=help_description(DemoArgs.__doc__), prog=PROG, config=CLI_STYLE)
     from trisplat.commands.train import make_train_args, run_training
 
     out = args.out

@@ -8,9 +8,10 @@ from typing import Annotated, Literal
 
 import tyro
 
-from trisplat.commands.style import CLI_STYLE, NO_DEFAULT_HINT
+from trisplat.commands.style import CLI_STYLE, NO_DEFAULT_HINT, flowing_help
 
 
+@flowing_help
 @dataclass
 class EvalConfig:
     """Render a trained run's test (or train) views and write RUN/eval_<split>/metrics.json and report.html."""

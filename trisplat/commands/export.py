@@ -8,12 +8,13 @@ from typing import Annotated, Literal
 
 import tyro
 
-from trisplat.commands.style import CLI_STYLE, NO_DEFAULT_HINT
+from trisplat.commands.style import CLI_STYLE, NO_DEFAULT_HINT, flowing_help
 from trisplat.io.export_run import EXPORT_FORMATS, export_run, export_targets
 
 EXPORT_SUBDIR = "export"
 
 
+@flowing_help
 @dataclass
 class ExportConfig:
     """Export a run's mesh in the capture's own frame and units (the inverse of the scene normalisation).

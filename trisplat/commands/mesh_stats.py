@@ -4,23 +4,27 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
 import tyro
 
+from trisplat.commands.style import CLI_STYLE, NO_DEFAULT_HINT, flowing_help
 from trisplat.mesh.stats import mesh_statistics
 
 
+@flowing_help
 @dataclass
 class MeshStatsConfig:
     """Print the statistics of a mesh file as JSON."""
 
     mesh: tyro.conf.Positional[Path]
     """mesh file (.ply/.obj/.glb/.stl/... any format trimesh reads); vertices are used as stored"""
-    weld_tolerance: float | None = None
-    """merge vertices closer than this (file units) first, e.g. 0 for exact duplicates of STL/OBJ seams"""
+    weld_tolerance: Annotated[float | None, NO_DEFAULT_HINT] = None
+    """merge vertices closer than this (file units) first, e.g. 0 for exact duplicates of STL/OBJ seams (default: no
+    merging)"""
     self_intersections: bool = True
-    """count edges crossing non-adjacent faces (BVH test)"""
+    """count edges crossing non-adjacent faces (BVH test; --no-self-intersections skips it)"""
 
 
 def read_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -43,7 +47,7 @@ def read_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
 
 
 def main(argv: list[str]) -> int:
-    cfg = tyro.cli(MeshStatsConfig, args=argv, prog="trisplat mesh-stats", description=__doc__)
+    cfg = tyro.cli(MeshStatsConfig, args=argv, prog="trisplat mesh-stats", description=__doc__, config=CLI_STYLE)
     v, f = read_mesh(cfg.mesh)
     if cfg.weld_tolerance is not None:
         from trisplat.mesh.cleanup import CleanupConfig, clean_mesh

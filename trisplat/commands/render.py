@@ -9,11 +9,12 @@ from typing import Annotated, Literal
 import tyro
 from tqdm import tqdm
 
-from trisplat.commands.style import CLI_STYLE, NO_DEFAULT_HINT
+from trisplat.commands.style import CLI_STYLE, NO_DEFAULT_HINT, flowing_help
 
 
 PROG = "trisplat render"
 
+@flowing_help
 @dataclass
 class RenderArgs:
     """Render a trained run's cameras (hard, opaque mesh by default) so anyone can score them with their tools."""

@@ -3,12 +3,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Annotated
 
 import tyro
 
+from trisplat.commands.style import CLI_STYLE, NO_DEFAULT_HINT, flowing_help
 from trisplat.slam.system import SlamConfig
 
 
+@flowing_help
 @dataclass
 class SlamArgs:
     """Track an RGB-D stream's camera poses and map it with triangles (Triangle Splatting SLAM), online, frames in
@@ -19,7 +22,7 @@ class SlamArgs:
     """RGB-D capture folder: TUM (rgb.txt + depth.txt), 7-Scenes/3DMatch (frame-NNNNNN.color/.depth), Redwood"""
     out: Path
     """run directory"""
-    depth_scale: float | None = None
+    depth_scale: Annotated[float | None, NO_DEFAULT_HINT] = None
     """metres per raw depth unit (default per format: TUM 1/5000, 7-Scenes and Redwood 1/1000)"""
     resume: bool = False
     """continue from RUN/checkpoint.pt"""
@@ -27,7 +30,7 @@ class SlamArgs:
 
 
 def main(argv: list[str]) -> int:
-    args = tyro.cli(SlamArgs, args=argv, prog="trisplat slam", description=__doc__)
+    args = tyro.cli(SlamArgs, args=argv, prog="trisplat slam", description=__doc__, config=CLI_STYLE)
     import torch
 
     from trisplat.data.rgbd_stream import open_stream

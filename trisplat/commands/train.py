@@ -13,11 +13,14 @@ from typing import Annotated, Literal
 import tyro
 
 from trisplat import run as layout
+from trisplat.commands.style import flowing_help, help_description
 from trisplat.train.config import PRESETS, TrainConfig, make_config
 
 
 PROG = "trisplat train"
 
+
+@flowing_help
 @dataclass
 class TrainArgs:
     """Train a scene: photos (or a generated scene) -> an opaque triangle mesh in OUT. Every field of the preset's
@@ -29,8 +32,9 @@ class TrainArgs:
     out: Path
     """Run directory (created; an existing run is never overwritten without --force)."""
     preset: Literal[tuple(PRESETS)] = "default"  # type: ignore[valid-type]
-    """fast (a few minutes on a laptop CPU), default, full (the paper's 30k steps), meshsplatting. Its values are
-    the defaults shown below."""
+    """fast (a few minutes on a laptop CPU), default, full (the paper's 30k steps), meshsplatting. Without --preset
+    the defaults shown are the 'default' preset's; another preset changes them (`trisplat train --preset fast --help`
+    shows its values)."""
     resume: bool = False
     """Continue a run from its last checkpoint with its saved configuration; --minutes, --checkpoint-every-s,
     --log-every, --eval-max-views, --num-renders and --eval-supersample may change, other settings are refused."""
@@ -192,8 +196,10 @@ def main(argv: list[str]) -> int:
     preset = _preset_in(argv)
     default = TrainArgs(data=tyro.MISSING, out=tyro.MISSING, preset=preset,  # type: ignore[arg-type]
                         config=make_config(preset) if preset in PRESETS else TrainConfig())
-    args = tyro.cli(TrainArgs, args=argv, default=default, description=TrainArgs.__doc__, prog=PROG,
-                    config=(tyro.conf.OmitArgPrefixes,))  # no DisallowNone: `--connect-at None` is meaningful
+    # no DisallowNone: `--connect-at None` is meaningful (TrainConfig gives its optional fields plain metavars); no
+    # FlagCreatePairsOff: a preset may turn a flag either way (`--no-final-max-weight-pass`, `--final-max-weight-pass`)
+    args = tyro.cli(TrainArgs, args=argv, default=default, description=help_description(TrainArgs.__doc__), prog=PROG,
+                    config=(tyro.conf.OmitArgPrefixes, tyro.conf.HelptextFromCommentsOff))
     args = pose_plain_photos(args)
     try:
         result = run_training(args, explicit_fields(argv))

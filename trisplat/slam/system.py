@@ -53,6 +53,7 @@ class SlamConfig:
     eval_every: int = 10
     """every this-many-th non-keyframe frame is scored (PSNR / SSIM / depth L1) at its tracked pose"""
     seed: int = 0
+    """random seed (torch and numpy) of the run"""
     track: TrackConfig = field(default_factory=TrackConfig)
     spawn: SpawnConfig = field(default_factory=SpawnConfig)
     mapping: MapConfig = field(default_factory=MapConfig)

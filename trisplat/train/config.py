@@ -3,21 +3,38 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import Literal
+from typing import Annotated, Literal
+
+import tyro
 
 PAPER_STEPS = 30_000  # the Triangle Splatting+ schedule is specified for 30k iterations; we scale it by progress
 
 
 @dataclass
 class TrainConfig:
-    """Soft-to-hard triangle splatting (Triangle Splatting+ defaults, scaled to `steps`)."""
+    """Soft-to-hard triangle splatting (Triangle Splatting+ defaults, scaled to `steps`).
+
+    Every schedule is a function of progress p = step / steps (0 at the start, 1 at the end), so a short run keeps the
+    shape of the paper's 30k-step schedule: settings of when something happens (`*_from`, `*_until`, `*_at`, ...) and
+    how often (`*_interval`, `eval_every`) are in progress 0-1. Each field's docstring is its `trisplat train --help`
+    text; the `# -- section` comments are not (tyro is told not to read comments, and every field has a docstring).
+    """
 
     steps: int = 7_000
-    """Total optimisation steps; every schedule is a function of step / steps."""
-    minutes: float | None = None
-    """If set, fit the whole schedule into this many minutes of wall time (step count estimated after a warm-up)."""
+    """Total optimisation steps; every schedule is a function of progress = step / steps (0-1). With --minutes the
+    step count is re-planned from the measured step rate."""
+    minutes: Annotated[float | None, tyro.conf.arg(metavar="FLOAT")] = None
+    """Wall-time budget, in minutes, for the optimisation steps: the step count is planned from the step rate measured
+    over the first 10 steps and re-planned every 25 steps (with a 10% margin), so the steps, with their pruning,
+    densification and switch to a connected surface, end within it (a resumed run counts the time already spent).
+    Not in the budget, so on top: loading (or posing) the capture, the initialisation, compiling the kernels (first
+    run only, then cached), checkpoint writes, the test evaluations during training (eval_every), and after the last
+    step the final pruning or surface pass, the model and mesh exports, the test renders and the scoring of the whole
+    test split. None: no budget, the run takes `steps` steps."""
     seed: int = 0
-    # --- data
+    """Random seed of the initialisation, the order of the training views and the faces densification picks."""
+
+    # -- data
     downscale: int = 1
     """Image downscale factor applied by the loader (1, 2, 4, 8)."""
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
@@ -26,7 +43,8 @@ class TrainConfig:
     """Capture format for the loader: auto | colmap | blender | ngp | rgbd (a folder holding several picks ngp)."""
     test_every: int = 8
     """For captures without splits, every n-th image is held out for testing."""
-    # --- initialisation
+
+    # -- initialisation
     init: str = "auto"
     """'auto' | 'delaunay' (TS+) | 'soup' (MeshSplatting) | 'hull' (surface of the visual hull of the alpha
     silhouettes) | 'random' (points in the scene box). auto: delaunay with sparse points, else hull when the training
@@ -38,69 +56,117 @@ class TrainConfig:
     init_random_size: float = 2.23
     """Random initialisation: triangle circumradius / RMS distance to the 3 nearest random points."""
     init_opacity: float = 0.28
+    """Vertex opacity (0-1) of the initial triangles."""
     sh_degree: int = 3
-    """Maximum SH degree (0-3); the active degree rises by one every 1k paper-iterations."""
-    # --- learning rates (Adam, eps 1e-15)
+    """Maximum spherical-harmonics degree of the colours (0-3); the active degree rises by one every 1/30 of the run
+    (1k of the paper's 30k steps)."""
+
+    # -- learning rates (Adam, eps 1e-15)
     lr_position: float = 1.5e-3
-    """Vertex position learning rate, times the scene extent; exponential decay to lr_position_final_ratio."""
+    """Vertex position learning rate, times the scene extent; after position_hold it decays exponentially to
+    lr_position x lr_position_final_ratio at the end."""
     lr_position_final_ratio: float = 0.01
+    """Position learning rate at the end / at the start of its decay (the paper's 0.01)."""
     position_hold: float = 1_000 / PAPER_STEPS
-    """Fraction of the run during which positions are frozen (lr 0)."""
+    """Progress (0-1) until which vertex positions stay frozen (learning rate 0)."""
     lr_sh_dc: float = 1.6e-3
+    """Learning rate of the SH DC coefficients (the base colour)."""
     lr_sh_rest_ratio: float = 1 / 20
+    """Learning rate of the higher SH bands, as a fraction of lr_sh_dc."""
     lr_opacity: float = 0.03
-    # --- soft-to-hard
+    """Learning rate of the vertex opacity logits."""
+
+    # -- soft-to-hard: window sharpness sigma and opacity floor
     sigma_start: float = 1.0
+    """Window sharpness sigma at the start (1: a soft tent; towards 0: hard, opaque-looking triangles); it falls
+    linearly to sigma_end over the run."""
     sigma_end: float = 1e-4
+    """Window sharpness sigma at the end of the run (the hard, opaque mesh)."""
     floor_start: float = 0.1
+    """Opacity floor set at floor_begin: no vertex opacity falls below it (the logits are re-solved when it rises, so
+    opacities do not jump)."""
     floor_end: float = 0.9999
+    """Opacity floor reached at floor_full and kept to the end (nearly opaque)."""
     floor_begin: float = 5_000 / PAPER_STEPS
+    """Progress (0-1) of the first opacity-floor raise (from no floor to floor_start)."""
     floor_full: float = 24_000 / PAPER_STEPS
+    """Progress (0-1) at which the opacity floor, rising linearly in steps, reaches floor_end."""
     floor_interval: float = 500 / PAPER_STEPS
-    # --- losses
+    """Progress (0-1) between two raises of the opacity floor."""
+
+    # -- losses
     lambda_dssim: float = 0.2
+    """Photometric loss (1 - lambda) L1 + lambda (1 - SSIM): the weight of the D-SSIM part."""
     lambda_opacity: float = 1.9e-6
+    """Weight of the opacity penalty (mean vertex opacity) until opacity_penalty_until."""
     opacity_penalty_until: float = 5_000 / PAPER_STEPS
+    """Progress (0-1) until which the opacity penalty applies."""
     lambda_normal: float = 5e-5
+    """Weight of the normal-consistency term (rendered normals vs normals of the rendered depth) from normal_from."""
     normal_from: float = 5_000 / PAPER_STEPS
+    """Progress (0-1) from which the normal-consistency term applies."""
     lambda_vertex_depth: float = 2.5e-4
+    """Weight of MeshSplatting's vertex-depth term (each vertex's view depth vs the rendered depth at its pixel) from
+    vertex_depth_from."""
     vertex_depth_from: float = 12_000 / PAPER_STEPS
+    """Progress (0-1) from which the vertex-depth term applies."""
     vertex_depth_max_diff: float = 0.5
     """Vertex-depth term only for |vertex depth - rendered depth| below this (scene units, normalised frame)."""
-    # --- pruning
+
+    # -- pruning (of the soup; none after the switch to a connected surface)
     prune_from: float = 4_000 / PAPER_STEPS
+    """Progress (0-1) of the first pruning event: faces whose min vertex opacity or max blending weight is at or
+    below the threshold, and oversized faces, are removed (events at least one epoch apart)."""
     prune_until: float = 25_000 / PAPER_STEPS
+    """Progress (0-1) from which no more pruning events happen (the final max-weight pass aside)."""
     prune_interval: float = 500 / PAPER_STEPS
+    """Progress (0-1) between two pruning events."""
     prune_threshold_start: float = 0.235
+    """Opacity and max-blending-weight threshold of the first pruning event."""
     prune_threshold_step: float = 0.01
+    """Added to the pruning threshold every prune_interval after prune_from."""
     prune_max_screen_frac: float = 0.875
     """Faces whose projected longest edge exceeds this fraction of the image's larger side are pruned
     (TS+ uses 1400 px on ~1600 px images)."""
     prune_max_fraction: float = 0.5
     """At most this fraction of the faces is removed by one pruning event (a guard for short schedules)."""
     final_max_weight_pass: bool = True
-    """After training, render all training views and drop faces whose max blending weight <= final_max_weight."""
+    """After training, render all training views and drop faces whose max blending weight <= final_max_weight
+    (a soup only: a connected surface gets its own clean-up pass)."""
     final_max_weight: float = 0.5
-    # --- densification
+    """Max-blending-weight threshold (0-1) of the final pass."""
+
+    # -- densification (of the soup; none after the switch to a connected surface)
     densify_from: float = 500 / PAPER_STEPS
+    """Progress (0-1) of the first densification event: chosen faces are split into 4 at their edge midpoints
+    (events at least one epoch apart)."""
     densify_until: float = 13_000 / PAPER_STEPS
+    """Progress (0-1) from which densification stops."""
     densify_interval: float = 500 / PAPER_STEPS
+    """Progress (0-1) between two densification events."""
     densify_growth: float = 1.23
+    """Each densification event grows the vertex count towards min(max_vertices, this x the current count), splitting
+    faces sampled by their max blending weight."""
     densify_largest: int = 100
+    """Besides the sampled faces, this many faces with the largest area are split at every densification event."""
     max_vertices: int = 300_000
     """Densification stops growing the vertex table beyond this cap."""
     min_face_px: float = 1.0
     """Faces smaller than this (longest edge, px) are never sampled for subdivision."""
-    # --- anti-aliasing
+
+    # -- anti-aliasing
     supersample_2x_from: float = 0.85
+    """Progress (0-1) from which training renders 2x2 samples per pixel (4x the pixels per step; >1 disables)."""
     supersample_4x_from: float = 1.01
-    """Render at 4x from this progress (>1 disables; 4x is costly on CPU)."""
-    # --- MeshSplatting (soup -> connected mesh)
+    """Progress (0-1) from which training renders 4x4 samples per pixel (>1 disables; 16x the pixels per step,
+    costly on CPU)."""
+
+    # -- MeshSplatting (soup -> connected mesh)
     output: Literal["surface", "soup"] = "surface"
     """'surface': the soup becomes ONE connected surface at `connect_at` and training fine-tunes it (the mesh a
     game or physics engine wants); 'soup': independent triangles to the end (no switch; connect_at is ignored)."""
-    connect_at: float | None = None
-    """Progress at which the soup is replaced by a connected mesh (stage 2); None = never (a soup to the end)."""
+    connect_at: Annotated[float | None, tyro.conf.arg(metavar="FLOAT|None")] = None
+    """Progress (0-1) at which the soup is replaced by a connected mesh (stage 2); None = never (a soup to the end)."""
     connect_method: Literal["fusion", "restricted_delaunay"] = "fusion"
     """'fusion': depth of the soup's renders fused into a TSDF, marching cubes, decimated (trisplat.train.switch);
     'restricted_delaunay': MeshSplatting's restricted Delaunay of the soup's vertices (thin soups only)."""
@@ -110,29 +176,37 @@ class TrainConfig:
     surface_face_ratio: float = 4.0
     """Face budget of the surface: this many times the soup's faces at the switch (fusion switch)."""
     surface_max_faces: int = 400_000
+    """Upper bound on the surface's face budget (fusion switch)."""
     surface_opacity: float = 0.9
     """Vertex opacity the fused surface starts with (fusion switch)."""
-    surface_sigma: float | None = 0.1
+    surface_sigma: Annotated[float | None, tyro.conf.arg(metavar="FLOAT|None")] = 0.1
     """After the switch the window sharpness is at most this, decaying geometrically to sigma_end (None: the
     linear schedule throughout). A soft window leaves a connected mesh's shared edges see-through."""
+    # Spot trials of surface_smoothness, 2,000 fine-tuning steps: 0 / 0.01 / 0.03 / 0.1 / 1 gave folded edges
+    # (> 90 degrees) 5.8 / 0.17 / 0.07 / 0.07 / 0.04 %, normal consistency with the true surface
+    # 0.905 / 0.937 / 0.945 / 0.953 / -, PSNR 32.68 / 32.45 / 32.29 / 32.16 / 31.45 dB.
     surface_smoothness: float = 0.1
     """Weight of the normal-smoothness term after the switch (mean 1 - cos between the normals of faces sharing an
-    edge): keeps the fine-tuned surface from crumpling where the photos do not say otherwise. Spot trials, 2,000
-    fine-tuning steps: 0 / 0.01 / 0.03 / 0.1 / 1 gave folded edges (> 90 degrees) 5.8 / 0.17 / 0.07 / 0.07 / 0.04 %,
-    normal consistency with the true surface 0.905 / 0.937 / 0.945 / 0.953 / -, PSNR 32.68 / 32.45 / 32.29 / 32.16 /
-    31.45 dB."""
-    # --- renderer
+    edge): keeps the fine-tuned surface from crumpling where the photos do not say otherwise."""
+
+    # -- renderer
     near: float = 0.01
+    """Near plane (view depth, normalised scene units): faces with a vertex nearer to the camera are not drawn."""
     tile_size: int = 16
+    """Screen tile edge (px) of the renderer: faces are depth-sorted per tile."""
     backend: str = "numba"
-    # --- bookkeeping
+    """Renderer and loss kernels: 'numba' (CPU), 'warp' (NVIDIA Warp, on CUDA or Warp's CPU device; gpu extra) or
+    'reference' (dense PyTorch, slow; for tests). --device cuda turns numba into warp."""
+
+    # -- bookkeeping
     log_every: int = 10
+    """Steps between the training records (loss, PSNR, faces, sigma) appended to RUN/history.jsonl."""
     eval_every: float = 0.25
-    """Evaluate test PSNR every this fraction of the run (and at the end)."""
+    """Progress (0-1) between test-PSNR evaluations during training (the whole test split is scored at the end)."""
     eval_max_views: int = 8
     """Test views rendered at intermediate evaluations (all of them at the end)."""
     checkpoint_every_s: float = 120.0
-    """Wall-time interval between checkpoints (seconds)."""
+    """Wall time of training (seconds) between checkpoints; one is also written at the end."""
     num_renders: int = 4
     """Test renders written to RUN/renders at the end."""
     eval_supersample: int = 2
