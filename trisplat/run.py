@@ -4,6 +4,7 @@ RUN/
   config.json          the TrainConfig (plus the data path and loader options) as JSON
   state.json           {"finished": bool, "step": int, "total_steps": int}
   checkpoints/last.pt  latest good checkpoint (written to a temporary file, then renamed)
+  checkpoints/soup.pt  the soup just before the switch to a connected surface (same format as last.pt)
   history.jsonl        one JSON object per logged step: step, wall_s, loss, psnr, faces, vertices, sigma
                        (and test_psnr on evaluation steps)
   model.ply            the full model: every SH coefficient and the opacity, reloadable losslessly
@@ -22,6 +23,7 @@ CONFIG = "config.json"
 STATE = "state.json"
 HISTORY = "history.jsonl"
 CHECKPOINT = "checkpoints/last.pt"
+SOUP_CHECKPOINT = "checkpoints/soup.pt"  # the soup just before the switch to a connected surface
 MODEL = "model.ply"
 METRICS = "metrics.json"
 RENDERS = "renders"

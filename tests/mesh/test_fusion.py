@@ -98,3 +98,42 @@ def test_bad_input_is_refused():
         grid_shape(np.array([[0.0, 0, 0], [np.nan, 1, 1]]), 32)
     with pytest.raises(ValueError, match="more than"):
         fuse_depths([cam], [np.ones((16, 16))], box, resolution=100_000)
+
+
+def test_unseen_space_is_solid_only_up_to_max_depth_behind_the_surface():
+    """The plane of the previous test seen only from above: with max_depth the occluded space below it is solid
+    for max_depth and free beyond (a slab, not a block down to the bottom of the box), and the surface's lowest
+    point lies max_depth below the observed band, within a voxel."""
+    cam = look_at([0.0, 0.0, 2.0], size=32, focal=32.0)
+    depth = np.full((32, 32), 2.0, np.float32)  # the plane z = 0 fills the view
+    bounds = np.array([[-0.4, -0.4, -0.5], [0.4, 0.4, 0.5]])
+    block = fuse_depths([cam], [depth], bounds, resolution=32, truncation_voxels=2.0)
+    slab = fuse_depths([cam], [depth], bounds, resolution=32, truncation_voxels=2.0, max_depth=0.2)
+    vb, _ = extract_surface(block)
+    vs, fs = extract_surface(slab)
+    assert vb[:, 2].min() < -0.45  # unbounded: solid down to the box
+    # bounded: the slab's underside max_depth below the observed band (which reaches one truncation behind the plane)
+    assert abs(vs[:, 2].min() - (-0.2 - slab.truncation)) <= slab.voxel
+    assert abs(vs[:, 2].max() - 0.0) <= slab.voxel
+    st = mesh_statistics(vs, fs)
+    assert st.connected_components == 1 and st.watertight
+
+
+def test_a_hollow_inside_is_a_cavity_whose_wall_is_dropped():
+    """A sphere seen from all around with max_depth below its radius: the field is a shell; marching cubes gives
+    the outer sphere and the (inside-out) wall of the hollow, which extract_surface drops: one outward sphere."""
+    centre, r = np.zeros(3), 0.6
+    cams = fibonacci_cameras(24)
+    depths = [sphere_depth(c, centre, r) for c in cams]
+    bounds = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+    grid = fuse_depths(cams, depths, bounds, resolution=48, truncation_voxels=3.0, max_depth=0.25)
+    assert grid.sdf[24, 24, 24] == 1.0  # the centre, 0.6 behind the surface from every view: free
+    v_all, f_all = extract_surface(grid, drop_cavities=False)
+    st_all = mesh_statistics(v_all, f_all)
+    assert st_all.connected_components == 2
+    v, f = extract_surface(grid)
+    st = mesh_statistics(v, f)
+    assert st.connected_components == 1 and st.watertight
+    assert np.abs(np.linalg.norm(v, axis=1) - r).max() < grid.voxel  # the outer sphere is what stays
+    tri = v[f]
+    assert np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])).sum() > 0

@@ -170,3 +170,68 @@ def test_subdivision_and_pruning_keep_shared_edges_shared():
     assert all(ts.params[n] not in ts.optimizer.state for n in ops.VERTEX_PARAMS)
     assert [g["params"][0] for g in ts.optimizer.param_groups] == [ts.params[n] for n in ops.VERTEX_PARAMS]
     assert ts.face_stats["max_weight"].shape == (new.num_faces,)
+
+
+def _closed_sphere_scene():
+    import trimesh
+
+    m = trimesh.creation.icosphere(subdivisions=2)
+    pos = torch.tensor(m.vertices, dtype=torch.float32)
+    g = torch.Generator().manual_seed(0)
+    return TriangleScene.from_rgb(pos, torch.tensor(m.faces), torch.rand(len(pos), 3, generator=g), 0.5, 1), m
+
+
+def test_conforming_refinement_keeps_a_closed_surface_closed():
+    """refine_faces on a closed sphere: still closed (every edge has exactly two faces), consistently wound, the same
+    area and volume (midpoints lie on the parents' edges), no T-junction (subdivide_faces would leave boundary edges
+    around the selection); the selected faces are split in 4, their neighbours bisected; rows stay aligned."""
+    import trimesh
+
+    scene, mesh = _closed_sphere_scene()
+    ts = _trainable_with_moments(scene)
+    ts.face_stats["max_weight"] = torch.arange(ts.num_faces, dtype=torch.float32)
+    centre = ts.params["positions"].detach()[ts.faces].mean(1)
+    sel = torch.stack([centre[:, 0].argmax(), centre[:, 0].argmin(), centre[:, 2].argmax()])  # far apart
+    parents_weight = ts.face_stats["max_weight"][sel].clone()
+    F0, V0 = ts.num_faces, ts.num_vertices
+    added = ops.refine_faces(ts, sel)
+    assert ts.num_vertices == V0 + added
+    counts = _edge_face_counts(ts.faces)
+    assert set(counts.values()) == {2}  # closed: no boundary (T-junction) and no non-manifold edge
+    out = trimesh.Trimesh(ts.params["positions"].detach().numpy(), ts.faces.numpy(), process=False)
+    assert out.is_winding_consistent and out.is_watertight
+    assert abs(out.area - mesh.area) < 1e-4 and abs(out.volume - mesh.volume) < 1e-4
+    # three isolated faces: 3 x 3 edges split; each selected face -> 4, each of its 3 neighbours -> 2
+    assert added == 9 and ts.num_faces == F0 + 3 * 3 + 3 * 3
+    # children keep their parent's statistics: the selected faces' weights appear 4 times each
+    for w in parents_weight.tolist():
+        assert int((ts.face_stats["max_weight"] == w).sum()) == 4
+    _assert_aligned(ts)
+    # the naive 1-to-4 split of the same faces leaves T-junctions: boundary edges appear
+    ts2 = _trainable_with_moments(_closed_sphere_scene()[0])
+    ops.subdivide_faces(ts2, sel)
+    assert 1 in set(_edge_face_counts(ts2.faces).values())
+
+
+def test_conforming_refinement_closure_splits_faces_with_two_split_edges():
+    """Two selected faces that both touch a third, unselected face: that face would get two split edges, so the
+    closure splits it in 4 as well (a face is only ever bisected through ONE split edge); the surface stays closed."""
+    scene, _ = _closed_sphere_scene()
+    ts = ops.make_trainable(scene, {})
+    edges = {}
+    for fi, f in enumerate(ts.faces.tolist()):
+        for a, b in ((f[0], f[1]), (f[1], f[2]), (f[2], f[0])):
+            edges.setdefault(tuple(sorted((a, b))), []).append(fi)
+    nb = {}
+    for f0, f1 in edges.values():
+        nb.setdefault(f0, set()).add(f1)
+        nb.setdefault(f1, set()).add(f0)
+    f = 0
+    g, h = sorted(nb[f])[:2]
+    f_edges = [tuple(sorted(e)) for e in ((ts.faces[f, 0], ts.faces[f, 1]), (ts.faces[f, 1], ts.faces[f, 2]),
+                                          (ts.faces[f, 2], ts.faces[f, 0]))]
+    f_edges = [(int(a), int(b)) for a, b in f_edges]
+    ops.refine_faces(ts, torch.tensor([g, h]))
+    counts = _edge_face_counts(ts.faces)
+    assert set(counts.values()) == {2}
+    assert not any(e in counts for e in f_edges)  # all three edges of f were split: f went 1-to-4

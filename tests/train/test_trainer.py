@@ -142,13 +142,23 @@ def test_surface_switch_ends_in_one_connected_surface(small_scene, tmp_path):
     from trisplat.mesh.stats import mesh_statistics
 
     tiny_scene = small_scene
-    tr = _trainer(tiny_scene, tmp_path / "s", steps=48, connect_at=0.5, densify_until=0.45, output="surface")
+    tr = _trainer(tiny_scene, tmp_path / "s", steps=48, connect_at=0.5, densify_until=0.45, output="surface",
+                  surface_refine_growth=1.3, surface_refine_until=0.95)
     psnr_before = tr.evaluate(0.0)
     tr.train()
     assert tr.connected
     hist = [json.loads(l) for l in (tmp_path / "s" / layout.HISTORY).read_text().splitlines()]
     switch = [h for h in hist if "switch" in h]
     assert len(switch) == 1 and switch[0]["step"] == 24  # at half of the 48 steps, once
+    # the soup was kept before the switch (checkpoints/soup.pt, restorable like last.pt)
+    from trisplat.train.checkpoint import load_checkpoint
+
+    soup = load_checkpoint(tmp_path / "s" / layout.SOUP_CHECKPOINT)
+    assert soup["step"] == 24 and not soup["extra"]["connected"]
+    # the surface was refined once, an epoch (16 views) after the switch, and grew by conforming splits
+    refine = [h for h in hist if "refine" in h]
+    assert [h["step"] for h in refine] == [40] and refine[0]["refine"]["faces_added"] > 0
+    assert refine[0]["refine"]["faces"] == switch[0]["switch"]["faces"] + refine[0]["refine"]["faces_added"]
     # the exported mesh as a user opens it: (nearly) one piece, welded (V/F near 0.5), no edge with more than two
     # faces; a soup has V/F 3 and one piece per face
     v, f = read_mesh(tmp_path / "s" / "mesh.ply")

@@ -9,7 +9,12 @@ cubic voxels, voxel centres at `origin + (ijk + 0.5) * voxel`. A depth map is vi
 per pixel: `inf` where the pixel sees nothing (its ray is free up to infinity: background), `nan` where unknown
 (skipped). Field values are signed distances in units of the truncation distance, clipped to [-1, 1]: positive
 in front of the observed surface (free), negative behind it. A voxel that lies inside some view but behind every
-view's surface (occluded) is solid (-1), as in space carving, so closed objects give closed surfaces; a voxel
+view's surface (occluded) is solid (-1), as in space carving, so closed objects give closed surfaces, but only
+within `max_depth` of an observed surface (a voxel some view's depth puts within the truncation band): farther
+from every observed surface it is free again. Unseen space has no thickness to go by, and without that bound it
+filled everything the cameras could not look behind (lego's base plate, seen only from above, became a block down to
+the bottom of the box, which low test views showed: -4 to -8 dB there); with it, the inside of a closed object is a
+cavity whose surface `extract_surface` drops (it is inside-out). A voxel
 inside no view is free (+1): nothing was seen there. Occluded views also cast a weak vote for solid
 (OCCLUSION_WEIGHT): without it, one ray with a wrong depth (a gap between soup triangles, a grazing face) would
 carve the inside of an object that every other view sees from outside.
@@ -39,7 +44,7 @@ class FusionGrid:
 
 
 @nb.njit(parallel=True, cache=True, fastmath=True)
-def _fuse_kernel(dims, origin, voxel, w2c, K, sizes, depths, trunc, near, occ_w, sdf_sum, w_sum, in_view):
+def _fuse_kernel(dims, origin, voxel, w2c, K, sizes, depths, trunc, near, occ_w, sdf_sum, w_sum, in_view, band):
     X, Y, Z = dims[0], dims[1], dims[2]
     n_views = w2c.shape[0]
     for i in nb.prange(X):
@@ -51,6 +56,7 @@ def _fuse_kernel(dims, origin, voxel, w2c, K, sizes, depths, trunc, near, occ_w,
                 s_acc = 0.0
                 w_acc = 0.0
                 n_in = 0
+                n_band = 0
                 for v in range(n_views):
                     M = w2c[v]
                     cz = M[2, 0] * x + M[2, 1] * y + M[2, 2] * z + M[2, 3]
@@ -79,13 +85,16 @@ def _fuse_kernel(dims, origin, voxel, w2c, K, sizes, depths, trunc, near, occ_w,
                             # behind the surface this view saw: occluded, a weak vote for solid
                             s_acc -= occ_w
                             continue
-                        if s > 1.0:
+                        if s < 1.0:
+                            n_band += 1  # within the truncation band of a measured surface
+                        else:
                             s = 1.0
                     s_acc += s
                     w_acc += 1.0
                 sdf_sum[i, j, k] = s_acc
                 w_sum[i, j, k] = w_acc
                 in_view[i, j, k] = n_in > 0
+                band[i, j, k] = n_band > 0
 
 
 def grid_shape(bounds: np.ndarray, resolution: int) -> tuple[tuple[int, int, int], float]:
@@ -101,15 +110,19 @@ def grid_shape(bounds: np.ndarray, resolution: int) -> tuple[tuple[int, int, int
 
 
 def fuse_depths(cameras, depths, bounds, resolution: int = 256, truncation_voxels: float = 3.0,
-                near: float = 1e-3, occlusion_weight: float = OCCLUSION_WEIGHT) -> FusionGrid:
+                near: float = 1e-3, occlusion_weight: float = OCCLUSION_WEIGHT,
+                max_depth: float = float("inf")) -> FusionGrid:
     """TSDF of the depth maps inside `bounds` (float [2,3], normalised frame).
 
     cameras: objects with world_to_camera [4,4], K [3,3], width, height (trisplat.cameras.Camera); depths: one
     float [H,W] view-depth map per camera (inf = nothing seen, nan = unknown). Each voxel averages, over the views
     that see it in front of or within `truncation_voxels` voxels behind their surface, the clipped signed distance
     (depth - voxel depth) / truncation; views where it lies farther behind the surface add -`occlusion_weight` to
-    the sum (not to the weight), views where it lies outside the image or behind the camera say nothing. Voxels inside some view but behind every view's surface are solid (-1); voxels in no
-    view at all are free (+1: nothing was seen there).
+    the sum (not to the weight), views where it lies outside the image or behind the camera say nothing. Voxels
+    inside some view but behind every view's surface are solid (-1); voxels in no view at all are free (+1: nothing
+    was seen there). Then every solid voxel farther than `max_depth` (scene units, Euclidean) from the nearest
+    observed voxel (one within the truncation band of some view's depth) becomes free: the field near what the
+    cameras measured is unchanged, and unseen space is a shell of that thickness behind it, not a block.
     """
     if len(cameras) != len(depths):
         raise ValueError(f"{len(cameras)} cameras but {len(depths)} depth maps")
@@ -135,18 +148,29 @@ def fuse_depths(cameras, depths, bounds, resolution: int = 256, truncation_voxel
     sdf_sum = np.empty(dims, np.float32)
     w_sum = np.empty(dims, np.float32)
     in_view = np.empty(dims, np.bool_)
+    band = np.empty(dims, np.bool_)
     _fuse_kernel(np.asarray(dims, np.int64), origin, voxel, w2c, K, sizes, stack, trunc, float(near),
-                 float(occlusion_weight), sdf_sum, w_sum, in_view)
+                 float(occlusion_weight), sdf_sum, w_sum, in_view, band)
     # observed: the mean; inside some view but always behind its surface: occluded, solid; in no view: free
     sdf = np.where(w_sum > 0, np.clip(sdf_sum / np.maximum(w_sum, 1e-12), -1.0, 1.0),
                    np.where(in_view, -1.0, 1.0)).astype(np.float32)
+    if np.isfinite(max_depth) and band.any():
+        from scipy import ndimage
+
+        # a ramp over one truncation distance, not a step: the cut is an offset surface of what was observed,
+        # smooth, instead of a staircase of voxels
+        dist = ndimage.distance_transform_edt(~band, sampling=voxel).astype(np.float32)
+        ramp = np.clip((dist - max_depth) / trunc, -1.0, 1.0)
+        np.maximum(sdf, ramp, out=sdf, where=sdf < 0)
     return FusionGrid(sdf, w_sum, origin, voxel, trunc)
 
 
-def extract_surface(grid: FusionGrid) -> tuple[np.ndarray, np.ndarray]:
+def extract_surface(grid: FusionGrid, drop_cavities: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Zero level set of the field (marching cubes, scikit-image) as vertices float64 [V,3] (normalised frame) and
     faces int64 [F,3], welded, counter-clockwise seen from the free side (outward). The grid is padded with free
-    space, so a solid region touching the box is closed along the box's faces. Empty when nothing is solid."""
+    space, so a solid region touching the box is closed along the box's faces. Empty when nothing is solid.
+    drop_cavities: remove the pieces that enclose free space inside solid (negative signed volume: their normals
+    point inwards), i.e. the walls of hollow insides, which no camera outside can see."""
     from skimage.measure import marching_cubes
 
     vol = np.pad(grid.sdf, 1, constant_values=1.0)
@@ -156,4 +180,21 @@ def extract_surface(grid: FusionGrid) -> tuple[np.ndarray, np.ndarray]:
     verts = grid.origin + (verts - 1.0 + 0.5) * grid.voxel  # padding, then voxel centres
     # with gradient_direction='descent' scikit-image winds each triangle counter-clockwise seen from the side where
     # the field is larger (free space): outward, as docs/conventions.md wants (tests/mesh/test_fusion.py checks it)
-    return verts.astype(np.float64), np.ascontiguousarray(faces, dtype=np.int64)
+    verts, faces = verts.astype(np.float64), np.ascontiguousarray(faces, dtype=np.int64)
+    if drop_cavities and len(faces):
+        faces = faces[~inside_out_pieces(verts, faces)]
+        used = np.zeros(len(verts), bool)
+        used[faces.reshape(-1)] = True
+        verts, faces = verts[used], (np.cumsum(used) - 1)[faces]
+    return verts, faces
+
+
+def inside_out_pieces(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """bool [F]: faces of the closed pieces whose signed volume is negative (normals pointing into the region they
+    enclose: the wall of a cavity, seen from the solid around it)."""
+    from trisplat.mesh.cleanup import face_components
+
+    n, label = face_components(faces, len(verts))
+    t = verts[faces]
+    vol = np.einsum("ij,ij->i", t[:, 0], np.cross(t[:, 1], t[:, 2])) / 6.0
+    return (np.bincount(label, weights=vol, minlength=n) < 0)[label]

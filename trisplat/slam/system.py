@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from trisplat.io.atomic import atomic_write_text
 from trisplat.data.rgbd_stream import RGBDStream, _box_down, downscale_depth, load_frame
 from trisplat.slam.map import PruneConfig, SlamMap, SpawnConfig, prune, spawn
 from trisplat.slam.mapping import Keyframe, MapConfig, refine
@@ -89,23 +90,24 @@ def save_checkpoint(path: Path, state: SlamState, frames_done: int) -> None:
         "frames_done": frames_done,
         "positions": sc.positions.detach(), "sh": sc.sh.detach(), "opacity_logit": sc.opacity_logit.detach(),
         "faces": sc.faces, "spawn_edge": state.smap.spawn_edge, "birth": state.smap.birth,
-        "c2w": np.array(state.c2w), "keyframe_ids": state.keyframe_ids, "track_loss": state.track_loss,
-        "track_iters": state.track_iters, "elapsed_s": state.elapsed_s,
+        "c2w": torch.as_tensor(np.array(state.c2w).reshape(-1, 4, 4), dtype=torch.float64),
+        "keyframe_ids": [int(k) for k in state.keyframe_ids], "track_loss": [float(v) for v in state.track_loss],
+        "track_iters": [int(v) for v in state.track_iters], "elapsed_s": float(state.elapsed_s),
     }
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(blob, tmp)
-    tmp.replace(path)
+    from trisplat.train.checkpoint import atomic_torch_save
+
+    atomic_torch_save(blob, path)
 
 
 def load_checkpoint(path: Path) -> tuple[SlamState, int]:
     from trisplat.scene.model import TriangleScene
 
     try:
-        b = torch.load(path, weights_only=False)
+        b = torch.load(path, map_location="cpu", weights_only=True)  # plain tensors and numbers: no code runs
     except Exception as exc:  # noqa: BLE001 - any unreadable file is the same user error
         raise ValueError(f"{path}: unreadable SLAM checkpoint ({exc})") from None
     sc = TriangleScene(b["positions"], b["sh"], b["opacity_logit"], b["faces"])
-    st = SlamState(SlamMap(sc, b["spawn_edge"], b["birth"]), [m for m in b["c2w"]], list(b["keyframe_ids"]),
+    st = SlamState(SlamMap(sc, b["spawn_edge"], b["birth"]), [m for m in b["c2w"].numpy()], list(b["keyframe_ids"]),
                    list(b["track_loss"]), list(b["track_iters"]), float(b["elapsed_s"]))
     return st, int(b["frames_done"])
 
@@ -260,7 +262,7 @@ def write_outputs(stream, out: Path, cfg: SlamConfig, state: SlamState, ids, key
                           "frames": len(have),
                           "alignment": "rigid SE(3) (Horn/Umeyama, no scale) of estimated onto reference camera centres"}
         log(f"ATE RMSE {rmse * 100:.2f} cm over {len(have)} frames (after rigid SE(3) alignment, no scale)")
-    (out / METRICS).write_text(json.dumps(metrics, indent=2))
+    atomic_write_text(out / METRICS, json.dumps(metrics, indent=2))
     log(f"wrote {out / TRAJECTORY}, {out / MODEL}, {out / MESH} ({mesh_info.get('faces', 0)} faces, largest "
         f"component {mesh_info.get('largest_component_fraction', 0):.1%}), {out / METRICS}")
     return metrics

@@ -12,7 +12,7 @@ import torch
 from trisplat.scene.model import TriangleScene
 
 VERTEX_PARAMS = ("positions", "sh_dc", "sh_rest", "opacity_logit")
-FACE_STATS = ("max_weight", "max_weight_prev", "max_screen_px", "max_screen_px_prev")
+FACE_STATS = ("max_weight", "max_weight_prev", "max_screen_px", "max_screen_px_prev", "colour_grad", "colour_grad_n")
 
 
 @dataclass
@@ -20,7 +20,9 @@ class TrainableScene:
     """A TriangleScene split into optimisable parameter tensors, with its Adam optimizer and statistics.
 
     params: name -> Parameter with V rows (names in VERTEX_PARAMS; sh_rest may have 0 columns for degree 0).
-    faces: int64 [F,3]. face_stats: name -> [F] tensors (running maxima between strategy events).
+    faces: int64 [F,3]. face_stats: name -> [F] tensors (running maxima between strategy events; for a connected
+    surface also colour_grad / colour_grad_n, the summed colour-gradient norm of the face's vertices and the number
+    of steps it was seen, which pick the faces to refine).
     """
 
     params: dict[str, torch.nn.Parameter]
@@ -212,3 +214,55 @@ def subdivide_faces(ts: TrainableScene, face_index: torch.Tensor) -> int:
     ts.faces = torch.cat([ts.faces[keep], children], 0)
     ts.face_stats = {k: torch.cat([v[keep], child_stats[k]], 0) for k, v in ts.face_stats.items()}
     return int(uniq.shape[0])
+
+
+def refine_faces(ts: TrainableScene, face_index: torch.Tensor) -> int:
+    """Conforming (red-green) refinement of a connected mesh: the selected faces are split into 4 at their edge
+    midpoints, and so is every face that would get two split edges; a face with one split edge is bisected into 2
+    through that edge's midpoint. Every edge midpoint is one vertex shared by the faces on both sides, so the mesh
+    stays welded: no T-junctions, no cracks, an edge shared by two faces before is shared by two faces after.
+
+    Midpoint attributes are the average of the edge's two vertices; new rows have zero Adam moments; children keep
+    their parent's winding and face statistics. Returns the number of new vertices.
+    """
+    face_index = torch.unique(face_index.to(torch.int64))
+    if face_index.numel() == 0:
+        return 0
+    faces = ts.faces
+    edges = torch.stack([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]], dim=1)  # [F,3,2]
+    uniq, face_edge = torch.unique(torch.sort(edges, dim=-1).values.reshape(-1, 2), dim=0, return_inverse=True)
+    face_edge = face_edge.reshape(-1, 3)  # [F,3] edge id of each face's edges (v0v1, v1v2, v2v0)
+    marked = torch.zeros(len(uniq), dtype=torch.bool, device=faces.device)
+    marked[face_edge[face_index].reshape(-1)] = True
+    while True:  # closure: a face with two split edges gets its third split too (it becomes a 1-to-4 face)
+        count = marked[face_edge].sum(1)
+        promote = count == 2
+        if not bool(promote.any()):
+            break
+        marked[face_edge[promote].reshape(-1)] = True
+    split = torch.nonzero(marked).squeeze(1)
+    a, b = uniq[split, 0], uniq[split, 1]
+    values = {name: 0.5 * (ts.params[name].detach()[a] + ts.params[name].detach()[b]) for name in VERTEX_PARAMS}
+    mid_of_edge = torch.full((len(uniq),), -1, dtype=torch.int64, device=faces.device)
+    mid_of_edge[split] = append_vertices(ts, values)
+    mid = mid_of_edge[face_edge]  # [F,3] midpoint of each face edge, -1 where not split
+    count = marked[face_edge].sum(1)
+    four, two = count == 3, count == 1
+    v0, v1, v2 = faces[four, 0], faces[four, 1], faces[four, 2]
+    m01, m12, m20 = mid[four, 0], mid[four, 1], mid[four, 2]
+    children = [torch.stack([v0, m01, m20], 1), torch.stack([m01, v1, m12], 1), torch.stack([m20, m12, v2], 1),
+                torch.stack([m01, m12, m20], 1)]
+    parents = [torch.nonzero(four).squeeze(1)] * 4
+    idx2 = torch.nonzero(two).squeeze(1)
+    k = torch.argmax((mid[idx2] >= 0).to(torch.int64), dim=1)  # the split edge: (v_k, v_k+1)
+    f2 = faces[idx2]
+    r = torch.arange(len(idx2), device=faces.device)
+    va, vb, vc = f2[r, k], f2[r, (k + 1) % 3], f2[r, (k + 2) % 3]
+    m = mid[idx2, k]
+    children += [torch.stack([va, m, vc], 1), torch.stack([m, vb, vc], 1)]
+    parents += [idx2, idx2]
+    keep = count == 0
+    parent = torch.cat(parents)
+    ts.face_stats = {n: torch.cat([v[keep], v[parent]], 0) for n, v in ts.face_stats.items()}
+    ts.faces = torch.cat([faces[keep], *children], 0)
+    return int(len(split))

@@ -53,9 +53,11 @@ def restore_trainable(ckpt: dict) -> ops.TrainableScene:
         st = ckpt["optimizer"][n]["state"]
         if st:
             opt.state[params[n]] = {k: (v.clone() if torch.is_tensor(v) else v) for k, v in st.items()}
+    F = int(ckpt["faces"].shape[0])
+    stats = {k: ckpt["face_stats"][k].clone() if k in ckpt["face_stats"] else torch.zeros(F)
+             for k in ops.FACE_STATS}  # checkpoints of older versions lack the newer statistics: they start at zero
     return ops.TrainableScene(params=params, optimizer=opt, faces=ckpt["faces"].clone(),
-                              opacity_floor=float(ckpt["opacity_floor"]),
-                              face_stats={k: v.clone() for k, v in ckpt["face_stats"].items()})
+                              opacity_floor=float(ckpt["opacity_floor"]), face_stats=stats)
 
 
 def load_checkpoint(path: Path) -> dict:

@@ -173,10 +173,17 @@ class TrainConfig:
     surface_resolution: int = 512
     """Fusion grid: voxels along the longest side of the soup's box (fusion switch; lowered to at most 48M voxels
     and to about two voxels per pixel of the training images)."""
-    surface_face_ratio: float = 4.0
+    # lego trials (docs/benchmarks.md, "connected surface"): one soup saved at the switch, fused and fine-tuned for
+    # 1,500 steps, hard 2x2 PSNR on every 12th test view: ratio 4 -> 8: +0.6 dB; unseen space bounded at 0.03 ->
+    # 0.01 of the box: +0.3 dB; smoothness 0.1 -> 0.03: +0.2 dB (spot kept its normal consistency: see there).
+    surface_face_ratio: float = 8.0
     """Face budget of the surface: this many times the soup's faces at the switch (fusion switch)."""
     surface_max_faces: int = 400_000
     """Upper bound on the surface's face budget (fusion switch)."""
+    surface_max_depth: float = 0.01
+    """Fusion switch: space no camera saw (behind every view's surface) is solid only this far from what the views
+    measured, as a fraction of the fused box's longest side; farther it is free (unseen undersides and insides get
+    this thickness instead of filling the box)."""
     surface_opacity: float = 0.9
     """Vertex opacity the fused surface starts with (fusion switch)."""
     surface_sigma: Annotated[float | None, tyro.conf.arg(metavar="FLOAT|None")] = 0.1
@@ -185,9 +192,16 @@ class TrainConfig:
     # Spot trials of surface_smoothness, 2,000 fine-tuning steps: 0 / 0.01 / 0.03 / 0.1 / 1 gave folded edges
     # (> 90 degrees) 5.8 / 0.17 / 0.07 / 0.07 / 0.04 %, normal consistency with the true surface
     # 0.905 / 0.937 / 0.945 / 0.953 / -, PSNR 32.68 / 32.45 / 32.29 / 32.16 / 31.45 dB.
-    surface_smoothness: float = 0.1
+    surface_smoothness: float = 0.03
     """Weight of the normal-smoothness term after the switch (mean 1 - cos between the normals of faces sharing an
     edge): keeps the fine-tuned surface from crumpling where the photos do not say otherwise."""
+    surface_refine_growth: float = 1.0
+    """After the switch, at each refinement event (every densify_interval, at least one epoch apart, until
+    surface_refine_until) the surface's faces grow towards this x their count (at most surface_max_faces): the faces
+    whose vertices get the largest colour gradients are split in 4, conformingly (the surface stays welded).
+    1 = no refinement."""
+    surface_refine_until: float = 0.85
+    """Progress (0-1) from which the connected surface is no longer refined."""
 
     # -- renderer
     near: float = 0.01

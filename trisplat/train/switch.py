@@ -24,6 +24,8 @@ from trisplat.scene.model import TriangleScene
 
 BOX_PERCENTILE = 0.5  # the box of the soup's vertices between these percentiles (per axis) ...
 BOX_MARGIN = 0.1  # ... grown by this fraction of its size on every side
+MIN_DEPTH_VOXELS = 3.0  # unseen space is solid at least this many voxels behind what was observed (a thinner shell
+# is breached by the noise of a coarse grid)
 
 
 @dataclass(frozen=True)
@@ -36,7 +38,7 @@ class SurfaceConfig:
     """grid size cap (memory: about 9 bytes per voxel; time: voxels x views projections)."""
     truncation_voxels: float = 3.0
     """TSDF truncation distance."""
-    face_ratio: float = 4.0
+    face_ratio: float = 8.0
     """face budget of the surface: this many times the soup's face count (decimated down to it, never up)."""
     max_faces: int = 400_000
     """upper bound of the face budget (count)."""
@@ -46,6 +48,11 @@ class SurfaceConfig:
     """vertex opacity the surface starts with (the trainer's opacity floor keeps rising from here)."""
     neighbours: int = 8
     """soup vertices whose attributes (SH, opacity) each surface vertex averages, weighted by opacity / distance."""
+    max_depth_fraction: float = 0.01
+    """space no view saw (behind every view's surface) is solid only this far behind the nearest surface, as a
+    fraction of the fused box's longest side; deeper it is free (a hollow inside, whose inside-out wall is dropped).
+    Without a bound, unseen space filled the box: lego's base plate, seen only from above, became a block down to
+    the bottom of the box, and test views from low down lost 4-8 dB on it."""
     fill_holes_px: int = 2
     """empty pixels closer than this (pixels) to covered ones on two sides (a morphological closing) take the depth
     of the nearest covered pixel: a soup has gaps between its triangles, and one ray through a gap would carve the
@@ -221,7 +228,9 @@ def soup_to_surface(scene: TriangleScene, cameras: Sequence, render: Callable[[i
     box = fusion_box(pos, bounds)
     res = fitting_resolution(box, config.resolution, config.max_voxels)
     rep.grid, rep.voxel = grid_shape(box, res)
-    grid = fuse_depths(cameras, depths, box, res, config.truncation_voxels)
+    grid = fuse_depths(cameras, depths, box, res, config.truncation_voxels,
+                       max_depth=max(config.max_depth_fraction * float((box[1] - box[0]).max()),
+                                     MIN_DEPTH_VOXELS * rep.voxel))
     rep.fuse_s = time.perf_counter() - t0
     if progress:
         progress(f"fused {len(cameras)} depth maps ({rep.fuse_s:.1f} s); extracting the surface")

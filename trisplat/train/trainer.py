@@ -22,6 +22,7 @@ from trisplat.strategy import ops
 from trisplat.strategy.densify import densify
 from trisplat.strategy.opacity import raise_floor
 from trisplat.strategy.prune import final_max_weight_prune, prune
+from trisplat.strategy.refine import accumulate_colour_gradient, refine_surface
 from trisplat.train import losses, schedules
 from trisplat.train.checkpoint import atomic_torch_save, checkpoint_state, load_checkpoint, restore_trainable
 from trisplat.train.config import TrainConfig
@@ -78,7 +79,7 @@ class Trainer:
         self.connected = False
         self.switch_failed = False  # the fusion switch found no surface: the run stays a soup
         self.surface_pass: dict | None = None
-        self._last_prune = self._last_densify = -(10**9)
+        self._last_prune = self._last_densify = self._last_refine = -(10**9)
         self.init_report = None  # what the initialisation did (when this trainer made the initial triangles)
         self.run_dir.mkdir(parents=True, exist_ok=True)
         if resume:
@@ -112,7 +113,7 @@ class Trainer:
     # ----------------------------------------------------------------------------------------------- bookkeeping
     def _extra(self) -> dict:
         return {"clock": [self.clock.total, self.clock.anchor_step, self.clock.anchor_p], "wall_s": self.wall_s,
-                "last_prune": self._last_prune, "last_densify": self._last_densify,
+                "last_prune": self._last_prune, "last_densify": self._last_densify, "last_refine": self._last_refine,
                 "lr_scale": self.lr_scale, "rollbacks": self.rollbacks, "failed_step": self._failed_step,
                 "connected": self.connected, "switch_failed": self.switch_failed,
                 "normalization": np.asarray(self.data.normalization).tolist()}
@@ -131,6 +132,7 @@ class Trainer:
         self.switch_failed = bool(ckpt["extra"].get("switch_failed", False))
         self._last_prune = int(ckpt["extra"].get("last_prune", -(10**9)))
         self._last_densify = int(ckpt["extra"].get("last_densify", -(10**9)))
+        self._last_refine = int(ckpt["extra"].get("last_refine", -(10**9)))
 
     def _write_config(self, data_options: dict, data_path: str | None) -> None:
         cfg = {**self.cfg.to_dict(), "data": str(data_path or self.data.root or ""), "data_options": data_options}
@@ -228,6 +230,8 @@ class Trainer:
         if not finite:
             self.ts.optimizer.zero_grad(set_to_none=True)
             return {"ok": False}
+        if self._refining(p):
+            accumulate_colour_gradient(self.ts)
         self.ts.optimizer.step()
         self.ts.optimizer.zero_grad(set_to_none=True)
         if not self._params_finite():
@@ -248,6 +252,14 @@ class Trainer:
             ts.roll_face_stats()
         if cfg.switch_at is not None and not self.connected and not self.switch_failed and p >= cfg.switch_at:
             self._connect()
+            self._last_refine = self.step  # the first refinement judges a whole epoch of the surface's gradients
+        if self._refining(p) and self.step - self._last_refine >= n_train and schedules.crossed(
+                p_prev, p, cfg.switch_at, cfg.surface_refine_until, cfg.densify_interval):
+            res = refine_surface(ts, cfg.surface_refine_growth, cfg.surface_max_faces, cfg.min_face_px)
+            self._last_refine = self.step
+            self._log({"step": self.step, "refine": {"faces_selected": res.faces_selected,
+                                                     "faces_added": res.faces_added, "faces": ts.num_faces,
+                                                     "vertices": ts.num_vertices, "reason": res.reason}})
         seen_all_views = self.step >= n_train
         # pruning judges faces by statistics over every view, so two prunes are at least one epoch apart; so are two
         # densifications (they sample by the same statistics). Spacing only one of them let short runs (fewer steps
@@ -264,8 +276,15 @@ class Trainer:
             densify(ts, cfg.densify_growth, cfg.max_vertices, cfg.densify_largest, cfg.min_face_px, self.generator)
             self._last_densify = self.step
 
+    def _refining(self, p: float) -> bool:
+        """Whether the connected surface is being refined at progress p (trisplat.strategy.refine)."""
+        return self.connected and self.cfg.surface_refine_growth > 1.0 and p < self.cfg.surface_refine_until
+
     def _connect(self) -> None:
-        """The stage-2 switch: the soup becomes one connected surface (cfg.connect_method), then fine-tuning."""
+        """The stage-2 switch: the soup becomes one connected surface (cfg.connect_method), then fine-tuning. The
+        soup is kept first as checkpoints/soup.pt (a checkpoint like last.pt: the switch can be redone from it)."""
+        atomic_torch_save(checkpoint_state(self.ts, self.step, self.clock.total, self.generator, self._extra()),
+                          self.run_dir / layout.SOUP_CHECKPOINT)
         if self.cfg.connect_method == "fusion":
             self._connect_fusion()
             return
@@ -293,7 +312,7 @@ class Trainer:
         # voxels finer than about half a pixel of the training images add nothing but time
         side = max(max(self.data.cameras[i].width, self.data.cameras[i].height) for i in train)
         scfg = SurfaceConfig(resolution=int(min(cfg.surface_resolution, max(2 * side, 32))),
-                             face_ratio=cfg.surface_face_ratio,
+                             face_ratio=cfg.surface_face_ratio, max_depth_fraction=cfg.surface_max_depth,
                              max_faces=cfg.surface_max_faces, opacity=cfg.surface_opacity)
         say = (lambda m: print(f"switch: {m}", file=sys.stderr, flush=True)) if self.show_progress else None
         if say:
