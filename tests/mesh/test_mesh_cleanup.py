@@ -107,3 +107,33 @@ def test_repair_non_manifold_edges_keeps_the_two_best_faces():
     assert r.num_non_manifold_faces == 2
     assert sorted(r.face_source.tolist()) == [0, 1]  # the two equilateral faces
     assert mesh_statistics(r.vertices, r.faces).non_manifold_edges == 0
+
+
+def test_oriented_repair_keeps_one_face_each_way_and_the_orientation():
+    """Two closed, outward boxes touching along one edge (4 faces on it, two traversing it each way): the oriented
+    repair keeps the best face in each direction, so every remaining two-face edge is traversed once each way; the
+    switch's _manifold also drops both faces of a fold (two faces on the same three vertices)."""
+    from trisplat.mesh.cleanup import non_manifold_excess_faces
+    from trisplat.mesh.orient import edge_table
+    from trisplat.train.switch import _manifold
+
+    a = trimesh.creation.box(extents=(1, 1, 1))
+    b = a.copy()
+    b.apply_translation((1.0, 1.0, 0.0))  # shares the vertical edge x = y = 0.5
+    v = np.vstack([a.vertices, b.vertices])
+    f = np.vstack([a.faces, b.faces + len(a.vertices)])
+    uniq, w = np.unique(v.round(9), axis=0, return_inverse=True)
+    v, f = uniq, w.reshape(-1)[f]
+    t = edge_table(f)
+    assert t.edge_face_count.max() == 4
+    drop = non_manifold_excess_faces(v, f, oriented=True)
+    kept = f[~drop]
+    assert edge_table(kept).edge_face_count.max() <= 2 and drop.sum() == 2
+    assert mesh_statistics(v, kept).consistently_oriented
+    # a fold on top: the same triangle twice, opposite windings, glued to the first box's top
+    top = a.faces[np.argmax(a.triangles_center[:, 2])]
+    fold = np.array([w.reshape(-1)[top], w.reshape(-1)[top][::-1]])
+    v2, f2 = _manifold(v, np.vstack([f, fold]))
+    st = mesh_statistics(v2, f2)
+    assert st.non_manifold_edges == 0 and st.consistently_oriented
+    assert len(f2) <= len(f) - 2  # the fold is gone, with the face it doubled

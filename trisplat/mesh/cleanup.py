@@ -30,6 +30,9 @@ class CleanupConfig:
     """drop faces using the same three vertices as an earlier face (either winding)."""
     repair_non_manifold_edges: bool = False
     """at every edge with more than two faces keep the two best-shaped faces (aspect quality) and drop the rest."""
+    repair_keeps_orientation: bool = False
+    """with repair_non_manifold_edges, on a consistently oriented input: of the faces at an over-full edge keep the
+    best-shaped one traversing it each way, so the kept faces stay consistently oriented."""
     orient: bool = True
     """flip faces so neighbours agree (outward on closed pieces)."""
     min_component_faces: int = 0
@@ -111,9 +114,12 @@ def face_quality(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return np.where(sq > 0, 4.0 * np.sqrt(3.0) * face_areas(vertices, faces) / np.maximum(sq, 1e-300), 0.0)
 
 
-def non_manifold_excess_faces(vertices: np.ndarray, faces: np.ndarray, max_rounds: int = 8) -> np.ndarray:
+def non_manifold_excess_faces(vertices: np.ndarray, faces: np.ndarray, max_rounds: int = 8,
+                              oriented: bool = False) -> np.ndarray:
     """bool [F]: faces to drop so that no edge has more than two faces; at each over-full edge the two faces of best
-    `face_quality` stay (repeated while dropping one face leaves another edge over-full, at most `max_rounds`)."""
+    `face_quality` stay (repeated while dropping one face leaves another edge over-full, at most `max_rounds`).
+    oriented: the faces are consistently oriented (as marching cubes and quadric decimation leave them), and stay so:
+    at each over-full edge the best face traversing it in each direction stays (one face where all go one way)."""
     from trisplat.mesh.orient import edge_table
 
     faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
@@ -127,11 +133,15 @@ def non_manifold_excess_faces(vertices: np.ndarray, faces: np.ndarray, max_round
             break
         edge = table.face_edges.reshape(-1)[slots]
         face = alive[slots // 3]
+        if oriented:  # one group per (edge, direction): keep the best face of each
+            a = faces[face, slots % 3]
+            forward = a == table.edges[edge, 0]
+            edge = 2 * edge + forward
         order = np.lexsort((-quality[face], edge))  # by edge, best quality first
         edge, face = edge[order], face[order]
         first = np.r_[True, edge[1:] != edge[:-1]]
         rank = np.arange(len(edge)) - np.maximum.accumulate(np.where(first, np.arange(len(edge)), 0))
-        drop[face[rank >= 2]] = True
+        drop[face[rank >= (1 if oriented else 2)]] = True
     return drop
 
 
@@ -161,7 +171,7 @@ def clean_mesh(vertices: np.ndarray, faces: np.ndarray, config: CleanupConfig = 
 
     num_nm = 0
     if config.repair_non_manifold_edges and len(f):
-        drop = non_manifold_excess_faces(v, f)
+        drop = non_manifold_excess_faces(v, f, oriented=config.repair_keeps_orientation)
         num_nm = int(drop.sum())
         f, face_src, area = f[~drop], face_src[~drop], area[~drop]
 

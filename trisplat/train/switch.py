@@ -266,11 +266,18 @@ def soup_to_surface(scene: TriangleScene, cameras: Sequence, render: Callable[[i
 
 
 def _manifold(verts: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Decimation can fold two faces onto the same vertices or leave more than two faces on an edge: drop duplicate
-    faces, keep the two best-shaped faces at such edges, then pieces below 1% of the largest, unused vertices."""
+    """Decimation can fold two faces onto the same vertices or leave more than two faces on an edge: drop both faces
+    of a fold, keep the best-shaped face traversing an over-full edge each way (marching cubes and decimation leave
+    the faces consistently oriented, and so do the kept ones; keeping one of a fold, or the two best-shaped faces
+    whatever their direction, left lego's surface impossible to orient consistently), then pieces below 1% of the
+    largest, unused vertices."""
     from trisplat.mesh.cleanup import CleanupConfig, clean_mesh
 
-    res = clean_mesh(verts, faces, CleanupConfig(weld=False, repair_non_manifold_edges=True, orient=False))
+    faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    _, inverse, count = np.unique(np.sort(faces, axis=1), axis=0, return_inverse=True, return_counts=True)
+    faces = faces[count[inverse.reshape(-1)] == 1]  # a fold (two faces on the same vertices): neither is a surface
+    res = clean_mesh(verts, faces, CleanupConfig(weld=False, drop_duplicate_faces=False, repair_non_manifold_edges=True,
+                                                 repair_keeps_orientation=True, orient=False))
     v, f, _, _ = _drop_small_pieces(res.vertices, res.faces, 0.01)
     return np.asarray(v, dtype=np.float64), f
 
