@@ -11,7 +11,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 
 from trisplat.cameras import Camera
 from trisplat.eval.views import SHADED_ALBEDO, SHADED_AMBIENT, REPORT_SHADED_VIEWS, evaluate_run, render_shaded

@@ -23,7 +23,7 @@ def _write_pair(color_path, depth_path, w=8, h=6, depth_raw=1000, depth_shape=No
 def _tum(root, rgb_stamps, depth_stamps, gt=True, name="rgbd_dataset_freiburg1_test"):
     root = root / name
     rgb, depth, poses = ["# rgb"], ["# depth"], ["# gt"]
-    for k, t in enumerate(rgb_stamps):
+    for t in rgb_stamps:
         _write_pair(root / "rgb" / f"{t:.6f}.png", root / "depth" / "unused.png")
         rgb.append(f"{t:.6f} rgb/{t:.6f}.png")
     for t in depth_stamps:

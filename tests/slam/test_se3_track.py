@@ -35,7 +35,7 @@ def test_exp_se3_gradient_at_zero_is_finite_and_exact():
 def test_tum_trajectory_roundtrip_and_ate(tmp_path):
     rng = np.random.default_rng(0)
     poses = []
-    for k in range(20):
+    for _ in range(20):
         T = exp_se3(torch.tensor(rng.normal(size=6) * 0.5, dtype=torch.float64)).numpy()
         poses.append(T)
     poses = np.array(poses)

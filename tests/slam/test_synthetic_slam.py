@@ -77,7 +77,8 @@ def test_slam_recovers_the_known_path(synthetic_capture, tmp_path):
     saved = json.loads((out / "metrics.json").read_text())
     # held-out frames: the map renders the geometry at the tracked poses (PSNR is low here: the synthetic
     # background is white, the map has nothing there and renders black)
-    assert saved["frames"] == N and saved["held_out"]["frames"] >= 2 and saved["held_out"]["depth_l1_m"] < 0.02  # 2 cm at ~2.3 m; a misplaced map is off by decimetres
+    # 2 cm at ~2.3 m; a misplaced map is off by decimetres
+    assert saved["frames"] == N and saved["held_out"]["frames"] >= 2 and saved["held_out"]["depth_l1_m"] < 0.02
     assert any(line.startswith(f"frame {N}/{N}") and "fps" in line and "triangles" in line for line in lines)
 
 

@@ -146,8 +146,8 @@ def test_subdivision_and_pruning_keep_shared_edges_shared():
     added = ops.subdivide_faces(ts, torch.tensor([0, 1]))
     assert added == 5  # 6 edges of two faces, the shared one counted once
     counts = _edge_face_counts(ts.faces)
-    mid = [v for v in range(ts.num_vertices) if torch.allclose(ts.params["positions"][v].detach(),
-                                                               0.5 * (ts.params["positions"][a] + ts.params["positions"][c]).detach())]
+    p = ts.params["positions"].detach()
+    mid = [v for v in range(ts.num_vertices) if torch.allclose(p[v], 0.5 * (p[a] + p[c]))]
     assert len(mid) == 1  # one midpoint for the shared edge
     m = mid[0]
     assert counts[tuple(sorted((a, m)))] == 2 and counts[tuple(sorted((m, c)))] == 2

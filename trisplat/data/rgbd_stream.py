@@ -8,11 +8,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from PIL import Image
 
 from trisplat.data.images import image_size, read_image
 from trisplat.data.rgbd import (
-    DEFAULT_DEPTH_SCALE,
     INTRINSIC_FILES,
     TUM_DEPTH_SCALE,
     _quat_to_matrix,
@@ -119,7 +117,7 @@ def read_sevenscenes(root: Path, depth_scale: float | None = None) -> RGBDStream
         raise FileNotFoundError(f"{intr}: 7-Scenes capture needs camera-intrinsics.txt (3x3 K)")
     K = _read_k_txt(intr)
     frames, missing_pose = [], 0
-    for i, (num, cpath) in enumerate(colors):
+    for i, (_num, cpath) in enumerate(colors):
         stem = cpath.name[: cpath.name.lower().index(".color.")]
         dpath = root / f"{stem}.depth.png"
         if not dpath.is_file():

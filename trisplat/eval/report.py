@@ -296,7 +296,7 @@ def write_report(
     # --- views
     if images:
         shaded = sum(vi.shaded is not None for vi in images)
-        parts.append(f"<h2>Views</h2><p>ground truth | render | "
+        parts.append("<h2>Views</h2><p>ground truth | render | "
                      + ("surface (the mesh without its colours: grey, lit from the camera; " f"{shaded} views) | "
                         if shaded else "")
                      + f"mean absolute error (black 0, yellow &ge; {ERROR_MAP_MAX:g}); {len(images)} of "

@@ -41,7 +41,8 @@ def export_run(
     """Write the run's model as `mesh.<fmt>` (base colour = SH DC term) and/or `model.ply` into `out_dir`
     (default: the run folder; existing files are replaced). Meshes land in the capture frame (the inverse of the
     scene normalisation); `up='y'|'z'` rotates the meshes so the capture's up direction, estimated from the
-    training cameras (see trisplat.io.axes), becomes +Y / +Z; 'auto' does so (+Y) for GLB only, None for none. The model PLY is never rotated (SH would change).
+    training cameras (see trisplat.io.axes), becomes +Y / +Z; 'auto' does so (+Y) for GLB only, None for none.
+    The model PLY is never rotated (SH would change).
     Returns the files written.
     """
     from trisplat.run import open_run

@@ -139,7 +139,7 @@ class PosesReport:
             f"camera      {self.camera_model} {', '.join(f'{p:.4g}' for p in self.camera_params)}"
             f"{' (focal prior from EXIF)' if self.focal_from_exif else ''}",
             f"matching    {self.matcher}: {self.pairs} pairs, {self.verified_pairs} verified",
-            f"time        " + ", ".join(f"{k} {v:.1f} s" for k, v in self.times.items()),
+            "time        " + ", ".join(f"{k} {v:.1f} s" for k, v in self.times.items()),
         ]
         if self.unregistered:
             lines.append(f"not registered  {name_list(self.unregistered)}")

@@ -66,8 +66,9 @@ class TrackResult:
 def pose_loss(pos_cam: torch.Tensor, faces, colors, opacities, sigma: float, rgb: torch.Tensor, depth: torch.Tensor,
               K: torch.Tensor, cfg: TrackConfig, supersample: int = 1, **render_options) -> tuple[torch.Tensor, float, float]:
     """Tracking loss of camera-frame vertex positions [V,3] against one observation (rgb [H,W,3], depth [H,W] metres,
-    0 invalid); returns (loss, coverage, mean depth residual in metres). Coarse levels render `supersample` x finer and box-filter down, so the
-    map's small triangles cover the coarse pixels as they cover the fine ones. render_options go to rasterize."""
+    0 invalid); returns (loss, coverage, mean depth residual in metres). Coarse levels render `supersample` x finer
+    and box-filter down, so the map's small triangles cover the coarse pixels as they cover the fine ones.
+    render_options go to rasterize."""
     H, W = depth.shape
     out = rasterize(pos_cam, faces, colors, opacities, torch.tensor(float(sigma)), IDENTITY, K, W, H,
                     opacity_mode="mean", supersample=supersample, **render_options)
