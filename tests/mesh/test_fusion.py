@@ -87,6 +87,27 @@ def test_free_pixels_carve_and_unobserved_space_is_solid():
     assert np.all(np.abs(sdf[near_plane]) < 0.5)
 
 
+def test_unknown_pixels_say_nothing():
+    # the plane z = 0 on the left half as before; the right half is unknown (nan: a hole in a SLAM map), not free.
+    # Voxels seen only through unknown pixels are in no view: free (+1), not occluded-solid; the left is unchanged.
+    cam = look_at([0.0, 0.0, 2.0], size=32, focal=32.0)
+    depth = np.full((32, 32), np.nan, np.float32)
+    depth[:, :16] = 2.0
+    bounds = np.array([[-0.5, -0.5, -0.5], [0.5, 0.5, 0.5]])
+    grid = fuse_depths([cam], [depth], bounds, resolution=16, truncation_voxels=2.0)
+    free = depth.copy()
+    free[:, 16:] = np.inf
+    ref = fuse_depths([cam], [free], bounds, resolution=16, truncation_voxels=2.0)
+    centres = grid.origin + (np.argwhere(np.ones(grid.sdf.shape, bool)) + 0.5) * grid.voxel
+    pc = centres @ cam.world_to_camera[:3, :3].T + cam.world_to_camera[:3, 3]
+    u = cam.K[0, 0] * pc[:, 0] / pc[:, 2] + cam.K[0, 2]
+    left, right = (u < 15) & (u > 1), (u > 17) & (u < 31)
+    sdf, w = grid.sdf.reshape(-1), grid.weight.reshape(-1)
+    assert np.all(sdf[right] == 1.0) and np.all(w[right] == 0)  # no view's weight: nothing observed there
+    assert np.all(ref.weight.reshape(-1)[right] > 0)  # free pixels do observe (carve)
+    assert np.array_equal(sdf[left], ref.sdf.reshape(-1)[left])
+
+
 def test_bad_input_is_refused():
     cam = look_at([0.0, 0.0, 2.0], size=16)
     box = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])

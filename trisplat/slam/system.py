@@ -55,6 +55,13 @@ class SlamConfig:
     """every this-many-th non-keyframe frame is scored (PSNR / SSIM / depth L1) at its tracked pose"""
     seed: int = 0
     """random seed (torch and numpy) of the run"""
+    mesh: str = "surface"
+    """how mesh.ply is made: 'surface' fuses the map's depth at the keyframes into one connected surface (the
+    training switch's path, trisplat.train.switch); 'delaunay' is the restricted Delaunay of the map's vertices
+    against its triangles (the paper's; pieces where the map is thin)"""
+    mesh_resolution: int = 512
+    """'surface' mesh: voxels along the longest side of the fused box (at most twice the processed frames' longer
+    side, and fewer when the grid would pass trisplat.train.switch's voxel cap)"""
     track: TrackConfig = field(default_factory=TrackConfig)
     spawn: SpawnConfig = field(default_factory=SpawnConfig)
     mapping: MapConfig = field(default_factory=MapConfig)
@@ -222,6 +229,36 @@ def evaluate_frames(stream: RGBDStream, smap: SlamMap, c2ws, ids, frame_numbers,
     return {"frames": len(frame_numbers), "psnr": mean(ps), "ssim": mean(ss), "depth_l1_m": mean(dl), "lpips": None}
 
 
+def map_surface(smap: SlamMap, keyframes: list[Keyframe], stream: RGBDStream, cfg: SlamConfig, log
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
+    """The map as one connected surface: its depth rendered at every keyframe's pose, fused (TSDF) and meshed by
+    trisplat.train.switch.soup_to_surface, vertex colours from the keyframes' photos. Pixels the map leaves empty
+    are unknown here, not free space: seen from inside a room, an empty pixel is a hole in the map, and taking it
+    for free space would carve through walls. Returns vertices [V,3], faces [F,3], colours [V,3], a report."""
+    from trisplat.cameras import Camera
+    from trisplat.scene.sh import sh_dc_to_rgb
+    from trisplat.train.switch import SurfaceConfig, soup_to_surface
+
+    K = stream.K_at(cfg.downscale)
+    W, H = stream.size_at(cfg.downscale)
+    cams = [Camera(np.linalg.inv(kf.c2w), K, W, H, name=f"keyframe {kf.frame}") for kf in keyframes]
+
+    def render(n: int):
+        with torch.no_grad():
+            return smap.render(cams[n].world_to_camera, K, W, H, cfg.sigma_end)
+
+    scfg = SurfaceConfig(resolution=int(min(cfg.mesh_resolution, 2 * max(W, H))), empty_is_free=False,
+                         drop_unseen=True)
+    surface, rep = soup_to_surface(smap.scene.detached(), cams, render, None, scfg,
+                                   lambda m: log(f"mesh: {m}", flush=True),
+                                   images=lambda n: keyframes[n].rgb.numpy())
+    log(f"mesh: {rep.summary()}", flush=True)
+    cols = sh_dc_to_rgb(surface.sh[:, 0, :]).numpy()
+    info = {"method": "the map's depth at the keyframes fused into one surface (trisplat.train.switch)",
+            "switch": rep.to_dict()}
+    return surface.positions.numpy().astype(np.float64), surface.faces.numpy().astype(np.int64), cols, info
+
+
 def write_outputs(stream, out: Path, cfg: SlamConfig, state: SlamState, ids, keyframes, slam_s, final_s, log) -> dict:
     from trisplat.io import export_mesh
     from trisplat.io.model_ply import save_model_ply
@@ -233,14 +270,20 @@ def write_outputs(stream, out: Path, cfg: SlamConfig, state: SlamState, ids, key
     sc = state.smap.scene.detached()
     save_model_ply(out / MODEL, sc, np.eye(4))
     tm = time.time()
-    cleaned, rep = connect_faces(sc.positions.numpy().astype(np.float64), sc.faces.numpy(),
-                                 ConnectConfig(repair_non_manifold_edges=True, drop_unreferenced_vertices=True))
-    mesh_info: dict = {"faces": int(len(cleaned.faces)), "vertices": int(len(cleaned.vertices)),
-                       "method": "restricted Delaunay of the map's vertices against its triangles (trisplat.mesh)"}
-    if len(cleaned.faces):
+    if cfg.mesh == "surface":
+        verts, faces, cols, mesh_info = map_surface(state.smap, keyframes, stream, cfg, log)
+    elif cfg.mesh == "delaunay":
+        cleaned, _ = connect_faces(sc.positions.numpy().astype(np.float64), sc.faces.numpy(),
+                                   ConnectConfig(repair_non_manifold_edges=True, drop_unreferenced_vertices=True))
+        verts, faces = cleaned.vertices, cleaned.faces
         cols = state.smap.colors().detach().numpy()[cleaned.vertex_source]
-        export_mesh(out / MESH, cleaned.vertices, cleaned.faces, np.clip(cols, 0, 1))
-        nc, lab = face_components(cleaned.faces, len(cleaned.vertices))
+        mesh_info = {"method": "restricted Delaunay of the map's vertices against its triangles (trisplat.mesh)"}
+    else:
+        raise ValueError(f"--slam.mesh must be 'surface' or 'delaunay', got {cfg.mesh!r}")
+    mesh_info.update(faces=int(len(faces)), vertices=int(len(verts)))
+    if len(faces):
+        export_mesh(out / MESH, verts, faces, np.clip(cols, 0, 1))
+        nc, lab = face_components(faces, len(verts))
         mesh_info.update(components=int(nc), largest_component_fraction=float(np.bincount(lab).max() / len(lab)))
     mesh_info["seconds"] = time.time() - tm
     kf_set = set(state.keyframe_ids)

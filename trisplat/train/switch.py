@@ -53,6 +53,14 @@ class SurfaceConfig:
     fraction of the fused box's longest side; deeper it is free (a hollow inside, whose inside-out wall is dropped).
     Without a bound, unseen space filled the box: lego's base plate, seen only from above, became a block down to
     the bottom of the box, and test views from low down lost 4-8 dB on it."""
+    empty_is_free: bool = True
+    """a pixel the soup leaves empty is free space all along its ray (background: an object capture). False for
+    scenes seen from inside (a SLAM map of a room): an empty pixel is a hole in the map, unknown, and carving along
+    it would cut through the walls behind."""
+    drop_unseen: bool = False
+    """drop the faces no view saw (every vertex farther than the truncation from each view's surface depth): the
+    far side of the solid that bounded unseen space leaves behind a surface seen from one side only (the back of a
+    wall in a room scan). Off for objects, whose surface is kept closed."""
     fill_holes_px: int = 2
     """empty pixels closer than this (pixels) to covered ones on two sides (a morphological closing) take the depth
     of the nearest covered pixel: a soup has gaps between its triangles, and one ray through a gap would carve the
@@ -175,6 +183,29 @@ def transfer_attributes(scene: TriangleScene, points: np.ndarray, neighbours: in
     return sh, torch.as_tensor((opac[idx] * w).sum(1), dtype=torch.float32)
 
 
+def _visible(cam, depth: np.ndarray, points: np.ndarray, tolerance: float):
+    """(indices into points, their pixel rows, columns) of the points [P,3] that `cam` sees: in front of it, inside
+    its image, within `tolerance` scene units of its surface depth [H,W] there."""
+    R, t = cam.world_to_camera[:3, :3], cam.world_to_camera[:3, 3]
+    pc = points @ R.T + t
+    z = pc[:, 2]
+    zs = np.where(z > 1e-9, z, 1.0)
+    u = (cam.K[0, 0] * pc[:, 0] + cam.K[0, 1] * pc[:, 1]) / zs + cam.K[0, 2]
+    v = cam.K[1, 1] * pc[:, 1] / zs + cam.K[1, 2]
+    ok = (z > 1e-9) & (u >= 0) & (v >= 0) & (u < cam.width) & (v < cam.height)
+    col, row = u[ok].astype(np.int64), v[ok].astype(np.int64)
+    vis = np.abs(depth[row, col] - z[ok]) <= tolerance
+    return np.nonzero(ok)[0][vis], row[vis], col[vis]
+
+
+def seen_counts(cameras: Sequence, depths: Sequence, points: np.ndarray, tolerance: float) -> np.ndarray:
+    """Number of views that see each of `points` [P,3] (see _visible) [P]."""
+    cnt = np.zeros(len(points))
+    for cam, depth in zip(cameras, depths):
+        cnt[_visible(cam, depth, points, tolerance)[0]] += 1
+    return cnt
+
+
 def image_colors(cameras: Sequence, images: Sequence, depths: Sequence, points: np.ndarray, tolerance: float
                  ) -> tuple[np.ndarray, np.ndarray]:
     """Mean RGB [P,3] of `points` over the views that see them (the point projects into the image, in front of the
@@ -182,17 +213,8 @@ def image_colors(cameras: Sequence, images: Sequence, depths: Sequence, points: 
     acc = np.zeros((len(points), 3))
     cnt = np.zeros(len(points))
     for cam, img, depth in zip(cameras, images, depths):
-        R, t = cam.world_to_camera[:3, :3], cam.world_to_camera[:3, 3]
-        pc = points @ R.T + t
-        z = pc[:, 2]
-        zs = np.where(z > 1e-9, z, 1.0)
-        u = (cam.K[0, 0] * pc[:, 0] + cam.K[0, 1] * pc[:, 1]) / zs + cam.K[0, 2]
-        v = cam.K[1, 1] * pc[:, 1] / zs + cam.K[1, 2]
-        ok = (z > 1e-9) & (u >= 0) & (v >= 0) & (u < cam.width) & (v < cam.height)
-        col, row = u[ok].astype(np.int64), v[ok].astype(np.int64)
-        vis = np.abs(depth[row, col] - z[ok]) <= tolerance
-        idx = np.nonzero(ok)[0][vis]
-        acc[idx] += np.asarray(img)[row[vis], col[vis], :3]
+        idx, row, col = _visible(cam, depth, points, tolerance)
+        acc[idx] += np.asarray(img)[row, col, :3]
         cnt[idx] += 1
     out = acc / np.maximum(cnt, 1)[:, None]
     return out, cnt
@@ -219,8 +241,9 @@ def soup_to_surface(scene: TriangleScene, cameras: Sequence, render: Callable[[i
     depths = []
     for n, cam in enumerate(cameras):
         out = render(n)
-        depths.append(fill_holes(surface_depth(out.face_id.cpu().numpy(), pos, fc, np.asarray(cam.world_to_camera),
-                                               np.asarray(cam.K)), config.fill_holes_px))
+        d = fill_holes(surface_depth(out.face_id.cpu().numpy(), pos, fc, np.asarray(cam.world_to_camera),
+                                     np.asarray(cam.K)), config.fill_holes_px)
+        depths.append(d if config.empty_is_free else np.where(np.isinf(d), np.nan, d))
     rep.render_s = time.perf_counter() - t0
     if not any(np.isfinite(d).any() for d in depths):
         raise ValueError("the soup covers no pixel of any training view: nothing to turn into a surface")
@@ -239,6 +262,11 @@ def soup_to_surface(scene: TriangleScene, cameras: Sequence, render: Callable[[i
     rep.marching_cubes_faces = len(faces)
     if len(faces) == 0:
         raise ValueError("depth fusion found no surface (every voxel is free): the soup's renders are empty")
+    if config.drop_unseen:
+        unseen = seen_counts(cameras, depths, verts, config.truncation_voxels * rep.voxel) == 0
+        keep = ~unseen[faces].all(1)
+        rep.notes.append(f"{int((~keep).sum())} of {len(faces)} faces no view saw dropped")
+        faces = faces[keep]
     verts, faces, rep.pieces, rep.pieces_dropped = _drop_small_pieces(verts, faces, config.min_component_fraction)
     target = int(min(config.max_faces, max(config.face_ratio * scene.num_faces, 1_000)))
     if len(faces) > target:
