@@ -12,6 +12,7 @@ from pathlib import Path
 
 import tyro
 
+from trisplat.commands.style import CLI_STYLE
 from trisplat.bench.common import BenchTable, median_ms
 
 
@@ -70,7 +71,7 @@ def _sh_case(n: int):
 
 
 def main(argv: list[str]) -> int:
-    args = tyro.cli(LossBenchArgs, args=argv, prog="trisplat bench losses", description=__doc__)
+    args = tyro.cli(LossBenchArgs, args=argv, prog="trisplat bench losses", description=__doc__, config=CLI_STYLE)
     table = BenchTable("losses", ["kernel", "size", "torch fwd+bwd ms", "fused fwd+bwd ms", "speed-up"])
     for size in args.sizes:
         for name, torch_fn, fused_fn in _cases(size):

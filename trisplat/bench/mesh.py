@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import tyro
 
+from trisplat.commands.style import CLI_STYLE
 from trisplat.bench.common import BenchTable, peak_rss_mb
 
 SOUP_SIZE_SPACINGS = 1.5  # soup triangle circumradius, in mean point spacings (dimensionless)
@@ -52,7 +53,7 @@ def torus_soup(num_vertices: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray
 
 
 def main(argv: list[str]) -> int:
-    args = tyro.cli(MeshBenchArgs, args=argv, prog="trisplat bench mesh", description=__doc__)
+    args = tyro.cli(MeshBenchArgs, args=argv, prog="trisplat bench mesh", description=__doc__, config=CLI_STYLE)
     from trisplat.mesh.restricted_delaunay import restricted_delaunay_report
     from trisplat.mesh.stats import mesh_statistics
 

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import tyro
 
+from trisplat.commands.style import CLI_STYLE
 from trisplat.bench.common import BenchTable, peak_rss_mb
 
 DEFAULT_CAPTURE = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "fox"
@@ -34,7 +35,7 @@ class PosesBenchArgs:
 
 
 def main(argv: list[str]) -> int:
-    args = tyro.cli(PosesBenchArgs, args=argv, prog="trisplat bench poses", description=__doc__)
+    args = tyro.cli(PosesBenchArgs, args=argv, prog="trisplat bench poses", description=__doc__, config=CLI_STYLE)
     from trisplat.data.colmap import find_model_dir
     from trisplat.sfm import PosesOptions, camera_centre_error, run_poses
     from trisplat.sfm.align import centres_from_model

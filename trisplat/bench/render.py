@@ -12,6 +12,8 @@ from typing import Literal
 import numpy as np
 import tyro
 
+from trisplat.commands.style import CLI_STYLE
+
 REFERENCE_MAX_FACES = 100_000  # the dense reference is run only up to this many faces ...
 REFERENCE_MAX_PIXELS = 256 * 256  # ... and this image size (it needs GBs and minutes beyond)
 GEN_CHUNK = 100_000  # triangles generated per chunk
@@ -132,7 +134,7 @@ CASES = [  # width, height, faces, min px, max px
 
 
 def main(argv: list[str] | None = None) -> int:
-    cfg = tyro.cli(BenchRenderConfig, args=argv, description=__doc__)
+    cfg = tyro.cli(BenchRenderConfig, args=argv, description=__doc__, config=CLI_STYLE)
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     if cfg.case:
         w, h, n, lo, hi, ref = cfg.case.split(",")

@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 import tyro
 
+from trisplat.commands.style import CLI_STYLE
 from trisplat.bench.common import BenchTable
 
 DEFAULT_CAPTURE = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "sevenscenes_rgbd"
@@ -154,7 +155,7 @@ def _run_open3d(args: SlamBenchArgs, run_dir: Path) -> dict:
 
 def main(argv: list[str]) -> int:
     own, extra = _split(list(argv))
-    args = tyro.cli(SlamBenchArgs, args=own, prog="trisplat bench slam", description=__doc__)
+    args = tyro.cli(SlamBenchArgs, args=own, prog="trisplat bench slam", description=__doc__, config=CLI_STYLE)
     unknown = [m for m in args.methods if m not in METHODS]
     if unknown or not args.methods:
         raise ValueError(f"--methods: {unknown or 'none given'}; choose from {', '.join(METHODS)}")

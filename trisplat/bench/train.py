@@ -9,6 +9,7 @@ from typing import Literal
 
 import tyro
 
+from trisplat.commands.style import CLI_STYLE
 from trisplat.bench.common import BenchTable
 
 PROG = "trisplat bench train"
@@ -96,7 +97,7 @@ def surface_columns(run_dir: Path) -> list:
 
 
 def main(argv: list[str]) -> int:
-    args = tyro.cli(TrainBenchArgs, args=argv, description=TrainBenchArgs.__doc__, prog=PROG)
+    args = tyro.cli(TrainBenchArgs, args=argv, description=TrainBenchArgs.__doc__, prog=PROG, config=CLI_STYLE)
     from trisplat.commands.train import make_train_args, run_training
     from trisplat.run import open_run
 

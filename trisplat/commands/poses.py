@@ -8,7 +8,7 @@ from typing import Literal
 
 import tyro
 
-from trisplat.commands.style import flowing_help, help_description
+from trisplat.commands.style import CLI_STYLE, flowing_help, help_description
 
 
 @flowing_help
@@ -54,7 +54,7 @@ class PosesArgs:
 
 
 def main(argv: list[str]) -> int:
-    args = tyro.cli(PosesArgs, args=argv, prog="trisplat poses", description=help_description(PosesArgs.__doc__))
+    args = tyro.cli(PosesArgs, args=argv, prog="trisplat poses", description=help_description(PosesArgs.__doc__), config=CLI_STYLE)
     from trisplat.sfm import PosesOptions, run_poses
 
     opts = PosesOptions(matcher=args.matcher, exhaustive_max=args.exhaustive_max, overlap=args.overlap,
