@@ -8,10 +8,11 @@ Conventions (docs/conventions.md): a grid `[X,Y,Z]` over a box in the normalised
 cubic voxels, voxel centres at `origin + (ijk + 0.5) * voxel`. A depth map is view depth (camera z, scene units)
 per pixel: `inf` where the pixel sees nothing (its ray is free up to infinity: background), `nan` where unknown
 (skipped: the view says nothing about the voxels behind that pixel). Field values are signed distances in units
-of the truncation distance, clipped to [-1, 1]: positive in front of the observed surface (free), negative behind it. A voxel that lies inside some view but behind every
-view's surface (occluded) is solid (-1), as in space carving, so closed objects give closed surfaces, but only
-within `max_depth` of an observed surface (a voxel some view's depth puts within the truncation band): farther
-from every observed surface it is free again. Unseen space has no thickness to go by, and without that bound it
+of the truncation distance, clipped to [-1, 1]: positive in front of the observed surface (free), negative behind
+it. A voxel that lies inside some view but behind every view's surface (occluded) is solid (-1), as in space
+carving, so closed objects give closed surfaces, but only within `max_depth` of an observed surface (a voxel some
+view's depth puts within the truncation band): farther from every observed surface it is free again. Unseen space
+has no thickness to go by, and without that bound it
 filled everything the cameras could not look behind (lego's base plate, seen only from above, became a block down to
 the bottom of the box, which low test views showed: -4 to -8 dB there); with it, the inside of a closed object is a
 cavity whose surface `extract_surface` drops (it is inside-out). A voxel
@@ -123,8 +124,9 @@ def fuse_depths(cameras, depths, bounds, resolution: int = 256, truncation_voxel
     the sum (not to the weight), views where it lies outside the image or behind the camera say nothing. Voxels
     inside some view (on a pixel that is not nan) but behind every view's surface are solid (-1); voxels in no view
     at all are free (+1: nothing was seen there). Then every solid voxel farther than `max_depth` (scene units,
-    Euclidean) from the nearest observed voxel (one within the truncation band of some view's depth) becomes free: the field near what the
-    cameras measured is unchanged, and unseen space is a shell of that thickness behind it, not a block.
+    Euclidean) from the nearest observed voxel (one within the truncation band of some view's depth) becomes
+    free: the field near what the cameras measured is unchanged, and unseen space is a shell of that thickness
+    behind it, not a block.
     """
     if len(cameras) != len(depths):
         raise ValueError(f"{len(cameras)} cameras but {len(depths)} depth maps")
