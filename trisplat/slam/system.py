@@ -248,7 +248,7 @@ def map_surface(smap: SlamMap, keyframes: list[Keyframe], stream: RGBDStream, cf
             return smap.render(cams[n].world_to_camera, K, W, H, cfg.sigma_end)
 
     scfg = SurfaceConfig(resolution=int(min(cfg.mesh_resolution, 2 * max(W, H))), empty_is_free=False,
-                         drop_unseen=True)
+                         unseen_faces="drop")
     surface, rep = soup_to_surface(smap.scene.detached(), cams, render, None, scfg,
                                    lambda m: log(f"mesh: {m}", flush=True),
                                    images=lambda n: keyframes[n].rgb.numpy())

@@ -184,6 +184,10 @@ class TrainConfig:
     """Fusion switch: space no camera saw (behind every view's surface) is solid only this far from what the views
     measured, as a fraction of the fused box's longest side; farther it is free (unseen undersides and insides get
     this thickness instead of filling the box)."""
+    surface_unseen_faces: Literal["keep", "drop_enclosed", "drop"] = "drop_enclosed"
+    """Fusion switch: faces of the fused surface that no training view sees. 'drop_enclosed' drops those facing the
+    surface itself (an object's inside wall, joined to its outside where its underside was never seen), 'drop'
+    every one, 'keep' none (trisplat.train.switch.SurfaceConfig.unseen_faces)."""
     surface_opacity: float = 0.9
     """Vertex opacity the fused surface starts with (fusion switch)."""
     surface_sigma: Annotated[float | None, tyro.conf.arg(metavar="FLOAT|None")] = 0.1

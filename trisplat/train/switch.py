@@ -14,6 +14,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
+from typing import Literal
 
 import numpy as np
 import torch
@@ -57,10 +58,13 @@ class SurfaceConfig:
     """a pixel the soup leaves empty is free space all along its ray (background: an object capture). False for
     scenes seen from inside (a SLAM map of a room): an empty pixel is a hole in the map, unknown, and carving along
     it would cut through the walls behind."""
-    drop_unseen: bool = False
-    """drop the faces no view saw (every vertex farther than the truncation from each view's surface depth): the
-    far side of the solid that bounded unseen space leaves behind a surface seen from one side only (the back of a
-    wall in a room scan). Off for objects, whose surface is kept closed."""
+    unseen_faces: Literal["keep", "drop_enclosed", "drop"] = "keep"
+    """faces no view saw (every vertex farther than the truncation from each view's surface depth): bounding unseen
+    space leaves the far side of a shell behind what the views measured. 'drop_enclosed' drops those whose outward
+    normal looks at the surface itself (a ray from the face along its normal hits the mesh): the inside wall of an
+    object whose underside was never seen, which joins the outside through the unseen opening and so survives
+    extract_surface's cavity test; an unseen underside that faces away into open space is kept, closing the object.
+    'drop' drops every unseen face (a room scan: the back of its walls faces outwards, into nothing)."""
     fill_holes_px: int = 2
     """empty pixels closer than this (pixels) to covered ones on two sides (a morphological closing) take the depth
     of the nearest covered pixel: a soup has gaps between its triangles, and one ray through a gap would carve the
@@ -220,6 +224,23 @@ def image_colors(cameras: Sequence, images: Sequence, depths: Sequence, points: 
     return out, cnt
 
 
+def unseen_faces(verts: np.ndarray, faces: np.ndarray, cameras: Sequence, depths: Sequence, tolerance: float,
+                 enclosed_only: bool) -> np.ndarray:
+    """bool [F]: faces none of whose vertices any view sees (seen_counts with `tolerance`); with enclosed_only, only
+    those whose outward normal ray (from just above the face's centroid) hits the mesh (trimesh's ray caster)."""
+    unseen = seen_counts(cameras, depths, verts, tolerance) == 0
+    out = unseen[faces].all(1)
+    if enclosed_only and out.any():
+        import trimesh
+
+        mesh = trimesh.Trimesh(verts, faces, process=False)
+        idx = np.nonzero(out)[0]
+        normal = mesh.face_normals[idx]
+        origin = mesh.triangles_center[idx] + 1e-3 * tolerance * normal
+        out[idx] = mesh.ray.intersects_any(origin, normal)
+    return out
+
+
 def soup_to_surface(scene: TriangleScene, cameras: Sequence, render: Callable[[int], object],
                     bounds: np.ndarray | None = None, config: SurfaceConfig = SurfaceConfig(),
                     progress: Callable[[str], None] | None = None,
@@ -262,11 +283,11 @@ def soup_to_surface(scene: TriangleScene, cameras: Sequence, render: Callable[[i
     rep.marching_cubes_faces = len(faces)
     if len(faces) == 0:
         raise ValueError("depth fusion found no surface (every voxel is free): the soup's renders are empty")
-    if config.drop_unseen:
-        unseen = seen_counts(cameras, depths, verts, config.truncation_voxels * rep.voxel) == 0
-        keep = ~unseen[faces].all(1)
-        rep.notes.append(f"{int((~keep).sum())} of {len(faces)} faces no view saw dropped")
-        faces = faces[keep]
+    if config.unseen_faces != "keep":
+        drop = unseen_faces(verts, faces, cameras, depths, config.truncation_voxels * rep.voxel,
+                            enclosed_only=config.unseen_faces == "drop_enclosed")
+        rep.notes.append(f"{int(drop.sum())} of {len(faces)} faces no view saw dropped ({config.unseen_faces})")
+        faces = faces[~drop]
     verts, faces, rep.pieces, rep.pieces_dropped = _drop_small_pieces(verts, faces, config.min_component_fraction)
     target = int(min(config.max_faces, max(config.face_ratio * scene.num_faces, 1_000)))
     if len(faces) > target:

@@ -313,7 +313,8 @@ class Trainer:
         side = max(max(self.data.cameras[i].width, self.data.cameras[i].height) for i in train)
         scfg = SurfaceConfig(resolution=int(min(cfg.surface_resolution, max(2 * side, 32))),
                              face_ratio=cfg.surface_face_ratio, max_depth_fraction=cfg.surface_max_depth,
-                             max_faces=cfg.surface_max_faces, opacity=cfg.surface_opacity)
+                             max_faces=cfg.surface_max_faces, opacity=cfg.surface_opacity,
+                             unseen_faces=cfg.surface_unseen_faces)
         say = (lambda m: print(f"switch: {m}", file=sys.stderr, flush=True)) if self.show_progress else None
         if say:
             say(f"step {self.step}: fusing the soup's depth in {len(train)} training views into one surface")
