@@ -158,3 +158,36 @@ def test_a_hollow_inside_is_a_cavity_whose_wall_is_dropped():
     assert np.abs(np.linalg.norm(v, axis=1) - r).max() < grid.voxel  # the outer sphere is what stays
     tri = v[f]
     assert np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])).sum() > 0
+
+
+def test_unseen_inside_wall_is_dropped_and_unseen_underside_kept():
+    # a sphere seen only from above (elevation 15-75 degrees): unseen space is solid just behind what was measured,
+    # so the fused shell is hollow, and its inside wall joins the outside through the never-seen underside (one
+    # piece: extract_surface's cavity test keeps it). drop_enclosed removes that wall (its normals look at the
+    # surface) and keeps the unseen underside (its normals look away into open space).
+    from trisplat.train.switch import unseen_faces
+
+    centre, r = np.zeros(3), 0.6
+    cams = []
+    for el in (15, 35, 55, 75):
+        for az in range(0, 360, 30):
+            e, a = np.radians(el), np.radians(az + el)
+            cams.append(look_at(2.5 * np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])))
+    depths = [sphere_depth(c, centre, r) for c in cams]
+    bounds = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+    grid = fuse_depths(cams, depths, bounds, resolution=48, truncation_voxels=3.0, max_depth=4 * 2.0 / 48)
+    v, f = extract_surface(grid)
+    tri_r = np.linalg.norm(v[f].mean(1), axis=1)
+    inner = tri_r < r - 2.5 * grid.voxel
+    e1, e2 = v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]
+    n = np.cross(e1, e2)
+    radial = np.einsum("ij,ij->i", n / np.linalg.norm(n, axis=1, keepdims=True), v[f].mean(1) / tri_r[:, None])
+    outer = (np.abs(tri_r - r) < 1.5 * grid.voxel) & (radial > 0.5)  # not the lip where the two walls meet
+    assert inner.sum() > 100 and mesh_statistics(v, f).connected_components == 1  # the hollow shell, one piece
+    tol = 3.0 * grid.voxel
+    drop = unseen_faces(v, f, cams, depths, tol, enclosed_only=True)
+    assert drop[inner].mean() > 0.9 and not drop[outer].any()
+    low = outer & (v[f].mean(1)[:, 2] < -0.9 * r)  # the bottom cap: no camera saw it
+    every = unseen_faces(v, f, cams, depths, tol, enclosed_only=False)
+    assert low.sum() > 10 and every[low].all()  # unseen ...
+    assert not drop[low].any()  # ... but facing open space: kept

@@ -175,7 +175,7 @@ class TrainConfig:
     and to about two voxels per pixel of the training images)."""
     # lego trials (docs/benchmarks.md, "connected surface"): one soup saved at the switch, fused and fine-tuned for
     # 1,500 steps, hard 2x2 PSNR on every 12th test view: ratio 4 -> 8: +0.6 dB; unseen space bounded at 0.03 ->
-    # 0.01 of the box: +0.3 dB; smoothness 0.1 -> 0.03: +0.2 dB (spot kept its normal consistency: see there).
+    # 0.01 of the box: +0.3 dB; smoothness 0.1 -> 0.03: +0.2 dB.
     surface_face_ratio: float = 8.0
     """Face budget of the surface: this many times the soup's faces at the switch (fusion switch)."""
     surface_max_faces: int = 400_000
