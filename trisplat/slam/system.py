@@ -6,6 +6,7 @@ import json
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import torch
@@ -55,7 +56,7 @@ class SlamConfig:
     """every this-many-th non-keyframe frame is scored (PSNR / SSIM / depth L1) at its tracked pose"""
     seed: int = 0
     """random seed (torch and numpy) of the run"""
-    mesh: str = "surface"
+    mesh: Literal["surface", "delaunay"] = "surface"
     """how mesh.ply is made: 'surface' fuses the map's depth at the keyframes into one connected surface (the
     training switch's path, trisplat.train.switch); 'delaunay' is the restricted Delaunay of the map's vertices
     against its triangles (the paper's; pieces where the map is thin)"""

@@ -288,6 +288,8 @@ def soup_to_surface(scene: TriangleScene, cameras: Sequence, render: Callable[[i
                             enclosed_only=config.unseen_faces == "drop_enclosed")
         rep.notes.append(f"{int(drop.sum())} of {len(faces)} faces no view saw dropped ({config.unseen_faces})")
         faces = faces[~drop]
+        if len(faces) == 0:
+            raise ValueError("no view sees any part of the fused surface: nothing is left to fine-tune")
     verts, faces, rep.pieces, rep.pieces_dropped = _drop_small_pieces(verts, faces, config.min_component_fraction)
     target = int(min(config.max_faces, max(config.face_ratio * scene.num_faces, 1_000)))
     if len(faces) > target:
