@@ -51,6 +51,21 @@ def test_eval_keeps_the_trainings_evaluation_without_force(run, capsys):
     assert json.loads((ev / "metrics.json").read_text())["split"] == "test"
 
 
+def test_eval_of_images_too_small_for_lpips_scores_the_rest(run, tmp_path, monkeypatch):
+    # with LPIPS weights present, 24x24 views cannot feed AlexNet: LPIPS is null with a note, the rest is scored
+    from conftest import shared_data
+
+    weights = shared_data("lpips") / "lpips_alexnet_full_oihw.npz"
+    if not weights.is_file():
+        pytest.skip(f"LPIPS weights not found at {weights}")
+    monkeypatch.setenv("TRISPLAT_LPIPS_WEIGHTS", str(weights))
+    out = tmp_path / "ev"
+    assert cli_main(["eval", str(run), "--max-views", "1", "--out", str(out)]) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["lpips"] is None and "at least 31x31" in m["lpips_note"] and "24x24" in m["lpips_note"]
+    assert m["psnr"] > 10
+
+
 def test_mesh_refuses_an_existing_output_before_triangulating(run, tmp_path, capsys, monkeypatch):
     import trisplat.mesh.connect as connect
 

@@ -146,6 +146,7 @@ def evaluate_run(
     `trisplat eval --device`, resolved by render.warp_backend.resolve_device) or a torch device: where the views
     are rendered (on a GPU with the Warp kernels); the metrics record a device other than the CPU.
     """
+    from trisplat.eval.lpips import MIN_SIZE_PX as LPIPS_MIN_SIZE_PX
     from trisplat.eval.lpips import load_lpips, lpips
     from trisplat.render.warp_backend import resolve_device
     from trisplat.run import open_run
@@ -174,6 +175,11 @@ def evaluate_run(
         load_lpips(lpips_weights)
     except FileNotFoundError as exc:
         lpips_note = str(exc)
+    small = [i for i in indices if min(data.cameras[i].width, data.cameras[i].height) < LPIPS_MIN_SIZE_PX]
+    if lpips_note is None and small:
+        c = data.cameras[small[0]]
+        lpips_note = (f"LPIPS-AlexNet needs images of at least {LPIPS_MIN_SIZE_PX}x{LPIPS_MIN_SIZE_PX} px; "
+                      f"{len(small)} view(s) of this split are smaller (e.g. {c.width}x{c.height})")
     shown = set(np.linspace(0, len(indices) - 1, min(len(indices), REPORT_MAX_IMAGE_VIEWS)).round().astype(int))
     shaded = set(sorted(shown)[:: max(1, -(-len(shown) // REPORT_SHADED_VIEWS))][:REPORT_SHADED_VIEWS]) if report \
         else set()
