@@ -2,34 +2,35 @@
 
 from __future__ import annotations
 
-import json
-import struct
 from collections.abc import Callable
 from dataclasses import dataclass
+import struct
 from pathlib import Path
 
 import numpy as np
 import trimesh
 from plyfile import PlyData, PlyElement
 
-from trisplat.io.atomic import atomic_target, atomic_write_bytes, atomic_write_text
+from trisplat.io.atomic import atomic_target, atomic_write_text
 from trisplat.io.axes import up_rotation
+from trisplat.io.gltf import TextureMap, write_glb
 
 MTL_MATERIAL = "default"
 GLTF_SUFFIXES = (".glb",)  # formats whose specification fixes the up axis (+Y)
-GL_ARRAY_BUFFER, GL_ELEMENT_ARRAY_BUFFER = 34962, 34963  # glTF bufferView.target values
 
 
 @dataclass(frozen=True)
 class MeshFormat:
-    """One file format: `write(path, positions, faces, rgb8) -> files written`, `read(path) -> trimesh`."""
+    """One file format: `write(path, positions, faces, rgb8, texture) -> files written`."""
 
     suffix: str
     description: str
-    write: Callable[[Path, np.ndarray, np.ndarray, np.ndarray | None], list[Path]]
+    write: Callable[[Path, np.ndarray, np.ndarray, np.ndarray | None, TextureMap | None], list[Path]]
 
 
-def _write_ply(path: Path, positions: np.ndarray, faces: np.ndarray, rgb8: np.ndarray | None) -> list[Path]:
+def _write_ply(path: Path, positions: np.ndarray, faces: np.ndarray, rgb8: np.ndarray | None,
+               texture: TextureMap | None = None) -> list[Path]:
+    """PLY has no texture: the vertex colours (sRGB bytes) are written with or without one."""
     fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
     if rgb8 is not None:
         fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
@@ -48,14 +49,38 @@ def _write_ply(path: Path, positions: np.ndarray, faces: np.ndarray, rgb8: np.nd
     return [path]
 
 
-def _write_obj(path: Path, positions: np.ndarray, faces: np.ndarray, rgb8: np.ndarray | None) -> list[Path]:
+def _write_obj(path: Path, positions: np.ndarray, faces: np.ndarray, rgb8: np.ndarray | None,
+               texture: TextureMap | None = None) -> list[Path]:
+    """OBJ + MTL. With a texture: `vt` rows (OBJ's v points up: 1 - glTF's v), `f v/vt` corners and map_Kd naming
+    a PNG beside the OBJ (sRGB, as MTL viewers read it); vertex colours are then left out (viewers would multiply)."""
     mtl = path.with_suffix(".mtl")
+    lines = [f"mtllib {mtl.name}"]
+    if texture is not None:
+        png = path.with_suffix(".png")
+        from PIL import Image
+
+        with atomic_target(png) as tmp:
+            Image.fromarray(texture.image, "RGB").save(str(tmp), format="PNG")
+        atomic_write_text(
+            mtl,
+            "# trisplat: base colour texture (sRGB PNG); shown unlit it matches the photos\n"
+            f"newmtl {MTL_MATERIAL}\nKa 1 1 1\nKd 1 1 1\nKs 0 0 0\nNs 1\nd 1\nillum 1\nmap_Kd {png.name}\n"
+        )
+        lines.insert(0, "# trisplat textured mesh: 'v x y z', 'vt u v' (v up), faces 'f v/vt'")
+        lines += [f"v {x:.9g} {y:.9g} {z:.9g}" for x, y, z in positions.astype(np.float64).tolist()]
+        uv = np.asarray(texture.uv, np.float64)
+        lines += [f"vt {u:.7f} {1.0 - v:.7f}" for u, v in uv.tolist()]
+        lines.append(f"usemtl {MTL_MATERIAL}")
+        fv, ft = faces.astype(np.int64) + 1, np.asarray(texture.uv_faces, np.int64) + 1
+        lines += [f"f {a}/{ta} {b}/{tb} {c}/{tc}" for a, b, c, ta, tb, tc in np.column_stack([fv, ft]).tolist()]
+        atomic_write_text(path, "\n".join(lines) + "\n")
+        return [path, mtl, png]
     atomic_write_text(
         mtl,
         f"# trisplat: colours are per vertex in {path.name}; this material only makes them visible\n"
         f"newmtl {MTL_MATERIAL}\nKa 0 0 0\nKd 1 1 1\nKs 0 0 0\nNs 1\nd 1\nillum 1\n"
     )
-    lines = ["# trisplat mesh: 'v x y z r g b' with vertex colours in [0, 1]", f"mtllib {mtl.name}"]
+    lines.insert(0, "# trisplat mesh: 'v x y z r g b' with vertex colours in [0, 1] (sRGB)")
     if rgb8 is not None:
         v = np.column_stack([positions.astype(np.float64), rgb8 / 255.0])
         lines += [f"v {x:.9g} {y:.9g} {z:.9g} {r:.6f} {g:.6f} {b:.6f}" for x, y, z, r, g, b in v.tolist()]
@@ -67,39 +92,16 @@ def _write_obj(path: Path, positions: np.ndarray, faces: np.ndarray, rgb8: np.nd
     return [path, mtl]
 
 
-def _write_glb(path: Path, positions: np.ndarray, faces: np.ndarray, rgb8: np.ndarray | None) -> list[Path]:
-    colors = None if rgb8 is None else np.column_stack([rgb8, np.full(len(rgb8), 255, np.uint8)])
-    mesh = trimesh.Trimesh(positions, faces, vertex_colors=colors, process=False)
-    atomic_write_bytes(path, _with_buffer_view_targets(mesh.export(file_type="glb")))
-    return [path]
-
-
-def _with_buffer_view_targets(glb: bytes) -> bytes:
-    """Set bufferView.target (vertex data / indices) in a GLB's JSON chunk, which trimesh leaves out and the
-    glTF validator hints about."""
-    magic, version, _ = struct.unpack_from("<4sII", glb, 0)
-    json_len, json_type = struct.unpack_from("<I4s", glb, 12)
-    if magic != b"glTF" or json_type != b"JSON":
-        raise ValueError("trimesh wrote a GLB without a leading JSON chunk")
-    gltf = json.loads(glb[20 : 20 + json_len])
-    views, accessors = gltf.get("bufferViews", []), gltf.get("accessors", [])
-    for mesh in gltf.get("meshes", []):
-        for prim in mesh.get("primitives", []):
-            for acc in prim.get("attributes", {}).values():
-                views[accessors[acc]["bufferView"]]["target"] = GL_ARRAY_BUFFER
-            if "indices" in prim:
-                views[accessors[prim["indices"]]["bufferView"]]["target"] = GL_ELEMENT_ARRAY_BUFFER
-    chunk = json.dumps(gltf, separators=(",", ":")).encode()
-    chunk += b" " * (-len(chunk) % 4)
-    rest = glb[20 + json_len :]
-    header = struct.pack("<4sII", magic, version, 12 + 8 + len(chunk) + len(rest))
-    return header + struct.pack("<I4s", len(chunk), b"JSON") + chunk + rest
+def _write_glb(path: Path, positions: np.ndarray, faces: np.ndarray, rgb8: np.ndarray | None,
+               texture: TextureMap | None = None) -> list[Path]:
+    """glTF 2.0 binary (trisplat.io.gltf): unlit material, baseColorTexture or linear COLOR_0."""
+    return [write_glb(path, positions, faces, rgb8, texture)]
 
 
 FORMATS: dict[str, MeshFormat] = {
-    ".ply": MeshFormat(".ply", "binary PLY, per-vertex RGB uchar", _write_ply),
-    ".obj": MeshFormat(".obj", "Wavefront OBJ ('v x y z r g b') with an MTL holding one default material", _write_obj),
-    ".glb": MeshFormat(".glb", "binary glTF 2.0, vertex colours in COLOR_0", _write_glb),
+    ".ply": MeshFormat(".ply", "binary PLY, per-vertex RGB uchar (sRGB)", _write_ply),
+    ".obj": MeshFormat(".obj", "Wavefront OBJ + MTL: map_Kd texture (sRGB PNG), else 'v x y z r g b' (sRGB)", _write_obj),
+    ".glb": MeshFormat(".glb", "binary glTF 2.0, unlit: baseColorTexture (sRGB PNG), else COLOR_0 (linear)", _write_glb),
 }
 
 
@@ -146,6 +148,7 @@ def export_mesh(
     up: str | None = "auto",
     transform: np.ndarray | None = None,
     capture_up: np.ndarray | None = None,
+    texture: TextureMap | None = None,
 ) -> list[Path]:
     """Write a coloured mesh; the format comes from the suffix (see FORMATS). Returns the files written.
 
@@ -154,7 +157,8 @@ def export_mesh(
     up: None keeps the axes; 'y' / 'z' then rotates so that `capture_up` (default: see `up_rotation`) becomes
     +Y / +Z; 'auto' (default) is 'y' for .glb (glTF is Y-up by definition, engines show a Z-up mesh on its side)
     and None for the other formats. A transform that mirrors (negative determinant) flips the winding so normals
-    stay outward.
+    stay outward. texture: a base colour texture over these faces (OBJ: map_Kd + PNG, GLB: baseColorTexture; PLY
+    keeps the vertex colours only).
     """
     path = Path(path)
     fmt = _format_of(path)
@@ -168,10 +172,14 @@ def export_mesh(
         positions = positions @ M[:3, :3].T + M[:3, 3]
         if np.linalg.det(M[:3, :3]) < 0:
             faces = faces[:, ::-1]
+            if texture is not None:
+                texture = TextureMap(texture.uv, np.asarray(texture.uv_faces)[:, ::-1], texture.image)
+    if texture is not None and np.asarray(texture.uv_faces).shape != faces.shape:
+        raise ValueError(f"texture uv_faces {np.asarray(texture.uv_faces).shape} and faces {faces.shape} differ")
     rgb8 = None if colors is None else np.round(colors * 255.0).astype(np.uint8)
     if not path.parent.exists():
         raise FileNotFoundError(f"{path}: folder {path.parent} does not exist")
-    return fmt.write(path, positions.astype(np.float32), faces.astype(np.int32), rgb8)
+    return fmt.write(path, positions.astype(np.float32), faces.astype(np.int32), rgb8, texture)
 
 
 def _read_trimesh(path: Path, **kwargs) -> trimesh.Trimesh:
@@ -205,6 +213,8 @@ def load_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | No
     _format_of(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such mesh file")
+    if path.suffix.lower() in GLTF_SUFFIXES:
+        return _load_glb(path)
     is_obj = path.suffix.lower() == ".obj"
     # trimesh lets an OBJ's material replace its vertex colours: read the geometry and colours without it first
     mesh = _read_trimesh(path, **({"skip_materials": True} if is_obj else {}))
@@ -217,3 +227,36 @@ def load_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | No
     if mesh.visual.kind == "vertex":
         colors = (np.asarray(mesh.visual.vertex_colors)[:, :3] / 255.0).astype(np.float32)
     return np.asarray(mesh.vertices, dtype=np.float32), np.asarray(mesh.faces, dtype=np.int32), colors
+
+
+def _load_glb(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """A GLB read per the specification (trisplat.io.gltf.read_glb), colours returned as sRGB display values:
+    linear COLOR_0 x baseColorFactor encoded, or the base colour texture at each vertex's uv (nearest texel)."""
+    from trisplat.io.colour import linear_to_srgb
+    from trisplat.io.gltf import read_glb
+
+    try:
+        asset = read_glb(path)
+    except (ValueError, KeyError, IndexError, struct.error) as exc:
+        raise ValueError(f"{path}: cannot read as .glb ({exc})") from exc
+    pos, fac, col, offset, any_colour = [], [], [], 0, False
+    for p in asset.primitives:
+        m = p.material
+        linear = np.tile(m.base_color_factor[:3], (len(p.positions), 1))
+        if p.color is not None:
+            linear = linear * p.color[:, :3]
+            any_colour = True
+        if m.image is not None and p.uv is not None:
+            h, w = m.image.shape[:2]
+            x = np.clip((p.uv[:, 0] * w).astype(np.int64), 0, w - 1)
+            y = np.clip((p.uv[:, 1] * h).astype(np.int64), 0, h - 1)
+            from trisplat.io.colour import srgb_to_linear
+
+            linear = linear * srgb_to_linear(m.image[y, x, :3] / 255.0)
+            any_colour = True
+        pos.append(p.positions)
+        fac.append(p.faces + offset)
+        col.append(linear_to_srgb(linear))
+        offset += len(p.positions)
+    colors = np.concatenate(col).astype(np.float32) if any_colour else None
+    return np.concatenate(pos).astype(np.float32), np.concatenate(fac).astype(np.int32), colors
