@@ -34,6 +34,12 @@ class EvalConfig:
     """samples per pixel side (anti-aliasing, 1-4; default: the run's eval_supersample, 1 for older runs)"""
     force: bool = False
     """replace an existing evaluation in the output folder (e.g. the one the training wrote)"""
+    file: Annotated[Path | None, NO_DEFAULT_HINT] = None
+    """score an exported file instead of the model: a .glb (relative paths: in RUN, e.g. mesh.glb) rendered as the
+    glTF specification defines it (unlit, base colour texture decoded from sRGB and filtered bilinearly, linear
+    COLOR_0, samples averaged in linear light, sRGB output); writes RUN/eval_<split>_file by default"""
+    up: Literal["auto", "y", "z", "capture"] = "auto"
+    """with --file: the up axis the file was exported with (as `trisplat export --up`)"""
     device: Literal["cpu", "cuda", "auto"] = "cpu"
     """cpu: the run's renderer on the CPU; cuda: the Warp kernels on the GPU (gpu extra and a CUDA build of torch);
     auto: cuda when both are there"""
@@ -48,12 +54,31 @@ def main(argv: list[str]) -> int:
     from trisplat.run import open_run
 
     open_run(cfg.run)  # the input first: a folder that is no run is named as such
+    if cfg.file is not None:
+        return _eval_file(cfg)
     device = resolve_device(cfg.device)  # before anything is written
     out = cfg.out or cfg.run / (f"eval_{cfg.split}" + ("_soft" if cfg.mode == "soft" else ""))
     refuse_to_overwrite([out / METRICS_JSON, out / REPORT_HTML], cfg.force, "write elsewhere with --out DIR")
     m = evaluate_run(cfg.run, cfg.split, cfg.mode, out_dir=cfg.out, lpips_weights=cfg.lpips_weights,
                      max_views=cfg.max_views, report=cfg.report, supersample=cfg.supersample,
                      device=device)  # fmt: skip
+    summary = {k: v for k, v in m.to_dict().items() if k != "views"}
+    print(json.dumps(json_safe(summary), indent=2))
+    if cfg.report:
+        print(f"report: {out / REPORT_HTML}")
+    return 0
+
+
+def _eval_file(cfg: EvalConfig) -> int:
+    from trisplat.eval.file_scores import evaluate_file
+    from trisplat.eval.report import METRICS_JSON, REPORT_HTML, json_safe
+    from trisplat.io.atomic import refuse_to_overwrite
+
+    out = cfg.out or cfg.run / f"eval_{cfg.split}_file"
+    refuse_to_overwrite([out / METRICS_JSON, out / REPORT_HTML], cfg.force, "write elsewhere with --out DIR")
+    m = evaluate_file(cfg.run, cfg.file, cfg.split, out_dir=out, supersample=cfg.supersample,
+                      up=None if cfg.up == "capture" else cfg.up, max_views=cfg.max_views, report=cfg.report,
+                      lpips_weights=cfg.lpips_weights)
     summary = {k: v for k, v in m.to_dict().items() if k != "views"}
     print(json.dumps(json_safe(summary), indent=2))
     if cfg.report:
