@@ -19,7 +19,8 @@ EXPORT_SUBDIR = "export"
 class ExportConfig:
     """Export a run's mesh in the capture's own frame and units (the inverse of the scene normalisation).
 
-    Meshes carry the view-independent colour (SH band 0) per vertex; `model` is the full model PLY with every SH
+    Meshes carry the view-independent colour (SH band 0) per vertex (and, with --texture-size, a texture fitted to
+    the photos); `model` is the full model PLY with every SH
     coefficient and the opacity, which reloads losslessly."""
 
     run: tyro.conf.Positional[Path]
@@ -34,6 +35,11 @@ class ExportConfig:
     """output folder (default: RUN/export)"""
     force: bool = False
     """replace files that already exist in the output folder"""
+    faces: Annotated[int | None, NO_DEFAULT_HINT] = None
+    """decimate the meshes to about N faces (level of detail; quadric edge collapse), then texture them"""
+    texture_size: int = 0
+    """side of a base-colour texture fitted to the run's training photos (OBJ map_Kd + PNG, GLB baseColorTexture);
+    0: vertex colours only. Score the result with `trisplat eval RUN --file OUT/mesh.glb`"""
 
 
 def main(argv: list[str]) -> int:
@@ -47,6 +53,6 @@ def main(argv: list[str]) -> int:
         print(f"trisplat export: error: would overwrite {names}; pass --force to replace them", file=sys.stderr)
         return 1
     up = None if cfg.up == "capture" else cfg.up
-    for path in export_run(cfg.run, formats=formats, up=up, out_dir=out):
+    for path in export_run(cfg.run, formats=formats, up=up, out_dir=out, faces=cfg.faces, texture_size=cfg.texture_size):
         print(path)
     return 0

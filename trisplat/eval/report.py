@@ -335,3 +335,27 @@ def write_report(
     page = out / REPORT_HTML
     atomic_write_text(page, "\n".join(parts))
     return page
+
+
+def add_file_scores(page: str | Path, model: SplitMetrics, file: SplitMetrics, file_report: str | None = None) -> Path:
+    """Insert a table 'What you get' into an existing report.html: the model's scores beside those of the exported
+    file rendered as its format's specification defines it (trisplat.eval.file_scores), with a link to the file's
+    own report. Returns the page."""
+    page = Path(page)
+    e = html.escape
+    rows = [("model (" + e(model.mode) + " render)", model), (e(str(file.extra.get("file", "file"))) +
+                                                            " (glTF spec render)", file)]
+    table = ["<h2>What you get</h2><table id='file-scores'><tr><th>rendered</th><th>PSNR (dB)</th><th>SSIM</th>"
+             "<th>LPIPS</th></tr>"]
+    for name, m in rows:
+        table.append(f"<tr><td class='name'>{name}</td><td>{_fmt(m.psnr, 2)}</td><td>{_fmt(m.ssim, 4)}</td>"
+                     f"<td>{_fmt(m.lpips, 4)}</td></tr>")
+    table.append("</table>")
+    if file_report:
+        table.append(f"<p><a href='{e(file_report)}'>the file's own report</a> (its renders beside the photos)</p>")
+    text = page.read_text()
+    marker = "<h2>Metrics</h2>"
+    text = text.replace(marker, "\n".join(table) + marker, 1) if marker in text else text.replace(
+        "</body>", "\n".join(table) + "</body>")
+    atomic_write_text(page, text)
+    return page

@@ -28,7 +28,7 @@ def export_targets(out_dir: Path, formats: Sequence[str]) -> list[Path]:
         else:
             out.append(out_dir / f"{MESH_STEM}.{f}")
             if f == "obj":
-                out.append(out_dir / f"{MESH_STEM}.mtl")
+                out.append(out_dir / f"{MESH_STEM}.mtl")  # and mesh.png when textured
     return out
 
 
@@ -37,12 +37,16 @@ def export_run(
     formats: Sequence[str] = ("ply", "obj", "glb"),
     up: str | None = "auto",
     out_dir: str | Path | None = None,
+    faces: int | None = None,
+    texture_size: int = 0,
 ) -> list[Path]:
     """Write the run's model as `mesh.<fmt>` (base colour = SH DC term) and/or `model.ply` into `out_dir`
     (default: the run folder; existing files are replaced). Meshes land in the capture frame (the inverse of the
     scene normalisation); `up='y'|'z'` rotates the meshes so the capture's up direction, estimated from the
     training cameras (see trisplat.io.axes), becomes +Y / +Z; 'auto' does so (+Y) for GLB only, None for none.
-    The model PLY is never rotated (SH would change).
+    The model PLY is never rotated (SH would change). faces: decimate the meshes to about this many faces
+    (level of detail; the model PLY keeps every face). texture_size > 0: fit a base-colour texture of that side to
+    the run's training photos (trisplat.texture) for OBJ (map_Kd + PNG) and GLB (baseColorTexture).
     Returns the files written.
     """
     from trisplat.run import open_run
@@ -52,10 +56,13 @@ def export_run(
     export_targets(out, formats)  # validates the format names before any work
     out.mkdir(parents=True, exist_ok=True)
     scene, normalization = run.load_model()
-    capture_up = None
+    capture_up, data = None, None
+    meshes = any(f != MODEL_FORMAT for f in formats)
+    if meshes and texture_size:
+        data = run.load_scene_data()  # texturing needs the photos: no fallback
     if any(f != MODEL_FORMAT and resolve_up(up, f"x.{f}") is not None for f in formats):
         try:
-            capture_up = estimate_capture_up(run.load_scene_data().cameras)
+            capture_up = estimate_capture_up((data or run.load_scene_data()).cameras)
         except (FileNotFoundError, ValueError) as exc:
             warnings.warn(
                 f"{run_dir}: cannot read the capture's cameras ({exc}); assuming the default up axis", stacklevel=2
@@ -65,15 +72,23 @@ def export_run(
                 f"{run_dir}: the cameras do not agree on an up direction; assuming the default up axis", stacklevel=2
             )
     inverse = np.linalg.inv(np.asarray(normalization, dtype=np.float64))
-    positions = scene.positions.detach().cpu().numpy()
-    faces = scene.faces.detach().cpu().numpy()
-    colors = scene.base_colors().detach().cpu().clamp(0.0, 1.0).numpy()
+    texture = None
+    if meshes and (faces is not None or texture_size):
+        from trisplat.texture.asset import build_asset
+
+        asset = build_asset(scene, data, texture_size=int(texture_size), faces=faces,
+                            supersample=int(run.config.get("eval_supersample", 2)),
+                            near=float(run.config.get("near", 0.01)))
+        positions, fc, colors, texture = asset.positions, asset.faces, asset.colors, asset.texture
+    elif meshes:
+        positions = scene.positions.detach().cpu().numpy()
+        fc = scene.faces.detach().cpu().numpy()
+        colors = scene.base_colors().detach().cpu().clamp(0.0, 1.0).numpy()
     written: list[Path] = []
     for f in formats:
         if f == MODEL_FORMAT:
             written.append(save_model_ply(out / "model.ply", scene, normalization))
         else:
-            written += export_mesh(
-                out / f"{MESH_STEM}.{f}", positions, faces, colors, up=up, transform=inverse, capture_up=capture_up
-            )
+            written += export_mesh(out / f"{MESH_STEM}.{f}", positions, fc, colors, up=up, transform=inverse,
+                                   capture_up=capture_up, texture=texture)
     return written

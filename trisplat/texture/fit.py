@@ -183,7 +183,7 @@ def _pcg(apply, b: np.ndarray, minv: np.ndarray, x: np.ndarray, iterations: int,
     bnorm = np.maximum(np.linalg.norm(b, axis=0), 1e-30)
     rel = float((np.linalg.norm(r, axis=0) / bnorm).max())
     k = 0
-    for k in range(1, iterations + 1):
+    for k in range(1, iterations + 1):  # noqa: B007 (k is the count returned)
         Ap = apply(p)
         alpha = rz / np.maximum((p * Ap).sum(0), 1e-30)
         x += p * alpha

@@ -33,17 +33,24 @@ def output_stems(cameras, indices) -> dict[int, str]:
     return stems
 
 
-def write_model_files(run_dir: Path, scene, normalization: np.ndarray, capture_up: np.ndarray | None = None) -> None:
+def write_model_files(run_dir: Path, scene, normalization: np.ndarray, capture_up: np.ndarray | None = None,
+                      asset=None) -> None:
     """model.ply (every SH band and opacity, reloadable) and the opaque mesh in the capture's frame (mesh.glb
-    turned so that `capture_up`, the capture's up direction, is +Y, as glTF defines; see io.export_mesh)."""
+    turned so that `capture_up`, the capture's up direction, is +Y, as glTF defines; see io.export_mesh).
+    asset: a trisplat.texture.asset.MeshAsset (decimated and/or textured) to write instead of the scene's mesh
+    with its SH band 0 as vertex colours."""
     from trisplat.io import export_mesh, save_model_ply
 
     save_model_ply(run_dir / layout.MODEL, scene, normalization)
-    colors = sh_dc_to_rgb(scene.sh[:, 0]).clamp(0, 1).numpy()
+    if asset is None:
+        positions, faces = scene.positions.numpy(), scene.faces.numpy()
+        colors, texture = sh_dc_to_rgb(scene.sh[:, 0]).clamp(0, 1).numpy(), None
+    else:
+        positions, faces, colors, texture = asset.positions, asset.faces, asset.colors, asset.texture
     to_capture = np.linalg.inv(normalization)
     for suffix in MESH_FORMATS:
-        export_mesh(run_dir / f"mesh.{suffix}", scene.positions.numpy(), scene.faces.numpy(), colors,
-                    transform=to_capture, capture_up=capture_up)
+        export_mesh(run_dir / f"mesh.{suffix}", positions, faces, colors, transform=to_capture,
+                    capture_up=capture_up, texture=texture)
 
 
 def write_outputs(trainer, pruned) -> dict:
@@ -61,8 +68,12 @@ def write_outputs(trainer, pruned) -> dict:
     normalization = np.asarray(data.normalization, dtype=np.float64)
     from trisplat.io import estimate_capture_up
 
+    from trisplat.texture.asset import build_asset
+
+    asset = build_asset(scene, data, texture_size=int(getattr(cfg, "texture_size", 0) or 0),
+                        faces=getattr(cfg, "export_faces", None), supersample=cfg.eval_supersample, near=cfg.near)
     write_model_files(run_dir, scene, normalization,
-                      estimate_capture_up([data.cameras[int(i)] for i in data.train_indices]))
+                      estimate_capture_up([data.cameras[int(i)] for i in data.train_indices]), asset)
     # state.json stays "unfinished" until metrics.json exists, so a crash here is redone by --resume
 
     renders = run_dir / layout.RENDERS
@@ -84,6 +95,10 @@ def write_outputs(trainer, pruned) -> dict:
             one = evaluate_run(run_dir, "test", "hard", out_dir=run_dir / "eval_test_1spp", report=False,
                                show_progress=False, supersample=1)
             metrics.update({"psnr_1spp": one.psnr, "ssim_1spp": one.ssim, "lpips_1spp": one.lpips})
+        metrics.update(_score_file(run_dir, data, ss, hard))
+    if asset.texture_report is not None:
+        metrics["texture"] = asset.texture_report
+    metrics["file_faces"] = int(len(asset.faces))
     opac = scene.opacities()
     metrics.update({
         "render_mode": "hard",
@@ -111,3 +126,15 @@ def _mesh_summary(scene) -> dict:
     keep = ("vertex_face_ratio", "connected_components", "largest_component_fraction", "boundary_edges",
             "non_manifold_edges", "self_intersecting_edges", "valence_mean", "watertight", "consistently_oriented")
     return {k: st[k] for k in keep}
+
+
+def _score_file(run_dir: Path, data, supersample: int, model) -> dict:
+    """mesh.glb scored as a glTF viewer shows it (trisplat.eval.file_scores), beside the model's scores; the model's
+    report gets a table of both."""
+    from trisplat.eval.file_scores import evaluate_file
+    from trisplat.eval.report import add_file_scores
+
+    f = evaluate_file(run_dir, run_dir / "mesh.glb", "test", supersample=supersample, show_progress=False, data=data)
+    add_file_scores(run_dir / "eval_test" / "report.html", model, f, "../eval_test_file/report.html")
+    return {"file_psnr": f.psnr, "file_ssim": f.ssim, "file_lpips": f.lpips, "file": "mesh.glb",
+            "file_report": str(Path("eval_test_file") / "report.html")}
