@@ -207,6 +207,15 @@ class TrainConfig:
     surface_refine_until: float = 0.85
     """Progress (0-1) from which the connected surface is no longer refined."""
 
+    # -- asset export
+    texture_size: int = 2048
+    """Side (texels) of the base-colour texture fitted to the training photos at the end of the run (UV atlas +
+    least squares, trisplat.texture) and written into mesh.glb (baseColorTexture) and mesh.obj (map_Kd); 0: no
+    texture (vertex colours only)."""
+    export_faces: Annotated[int | None, tyro.conf.arg(metavar="INT")] = None
+    """Decimate the exported mesh files (mesh.ply/obj/glb) to about this many faces before texturing (the model
+    keeps its faces); None: export every face."""
+
     # -- renderer
     near: float = 0.01
     """Near plane (view depth, normalised scene units): faces with a vertex nearer to the camera are not drawn."""
