@@ -13,6 +13,15 @@ class PruneResult:
     faces_before: int
     faces_removed: int
     vertices_removed: int
+    # faces condemned by each rule (a face can meet several; the cap on one event's removals may spare some)
+    by_opacity: int = 0
+    by_weight: int = 0
+    by_size: int = 0
+
+    def to_dict(self) -> dict:
+        return {"faces_before": self.faces_before, "faces_removed": self.faces_removed,
+                "vertices_removed": self.vertices_removed, "by_opacity": self.by_opacity,
+                "by_weight": self.by_weight, "by_size": self.by_size}
 
 
 def prune(ts: ops.TrainableScene, threshold: float, max_screen_px: float | None = None,
@@ -28,9 +37,12 @@ def prune(ts: ops.TrainableScene, threshold: float, max_screen_px: float | None 
         o = ts.opacities()
         face_opacity = o[ts.faces].min(dim=1).values
         weight = ts.face_stat("max_weight")
-        remove = (face_opacity <= threshold) | (weight <= threshold)
+        low_opacity, low_weight = face_opacity <= threshold, weight <= threshold
+        remove = low_opacity | low_weight
+        oversized = torch.zeros_like(remove)
         if max_screen_px is not None:
-            remove |= ts.face_stat("max_screen_px") > max_screen_px
+            oversized = ts.face_stat("max_screen_px") > max_screen_px
+            remove |= oversized
         keep_at_least = min(F, max(min_faces, F - int(max_fraction * F)))
         if int((~remove).sum()) < keep_at_least:
             # keep the most important of the condemned faces (oversized ones are not spared)
@@ -40,7 +52,7 @@ def prune(ts: ops.TrainableScene, threshold: float, max_screen_px: float | None 
     n_removed = int(remove.sum())
     ops.keep_faces(ts, ~remove)
     v_removed = ops.remove_orphan_vertices(ts)
-    return PruneResult(F, n_removed, v_removed)
+    return PruneResult(F, n_removed, v_removed, int(low_opacity.sum()), int(low_weight.sum()), int(oversized.sum()))
 
 
 def final_max_weight_prune(ts: ops.TrainableScene, max_weight: torch.Tensor, threshold: float) -> PruneResult:

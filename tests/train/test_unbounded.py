@@ -1,0 +1,124 @@
+"""Unbounded captures (issue 24): a room seen from inside keeps its faces, its walls and its PSNR; a run watches
+itself for collapses and says when its result cannot be trusted."""
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from trisplat import run as layout
+from trisplat.train.config import make_config
+from trisplat.train.health import RunHealth, verdict
+from trisplat.train.trainer import Trainer
+
+
+@pytest.fixture(scope="module")
+def room(tmp_path_factory):
+    from trisplat.synth.room import write_room_scene
+
+    return write_room_scene(tmp_path_factory.mktemp("room") / "capture", n_views=32, width=96, height=72,
+                            samples_per_pixel=1, n_points=1500)
+
+
+def _history(run_dir):
+    return [json.loads(line) for line in (run_dir / layout.HISTORY).read_text().splitlines() if line.strip()]
+
+
+def _room_trainer(room, run_dir, **over):
+    from trisplat.data import load_dataset
+
+    cfg = make_config("default", **{**dict(steps=700, eval_every=0.1, eval_max_views=4, checkpoint_every_s=1e9,
+                                           num_renders=1), **over})
+    opts = {"downscale": 1, "background": list(cfg.background)}
+    data = load_dataset(room, **opts)
+    return Trainer(cfg, data, run_dir, show_progress=False, data_options=opts, data_path=str(room))
+
+
+def test_room_capture_is_a_colmap_scene_with_content_beyond_the_cameras(room):
+    from trisplat.data import load_dataset
+
+    data = load_dataset(room)
+    assert data.format == "colmap" and data.points is not None and len(data.test_indices) == 4
+    centres = np.stack([c.camera_to_world[:3, 3] for c in data.cameras])
+    assert np.linalg.norm(centres, axis=1).max() < 1.0
+    assert data.bounds_radius > 1.5  # walls, floor and ceiling well outside the camera ring
+
+
+def test_default_run_on_a_room_keeps_its_faces_walls_and_psnr(room, tmp_path):
+    """Fails on the code before issue 24: faces just in front of a camera's plane, far off to its side, counted as
+    'oversized' and pruned most of the room (the soup fell to 17% of its peak before the switch, test PSNR ~15 dB)."""
+    run_dir = tmp_path / "run"
+    trainer = _room_trainer(room, run_dir)
+    trainer.train()
+    hist = _history(run_dir)
+    switch = next(h["step"] for h in hist if "switch" in h)
+    soup_faces = [h["faces"] for h in hist if "faces" in h and "loss" in h and h["step"] < switch]
+    peak = max(soup_faces)
+    assert soup_faces[-1] >= 0.5 * peak, (soup_faces[-1], peak)  # the soup reaches the switch with its faces
+    tests = [h["test_psnr"] for h in hist if "test_psnr" in h]
+    m = json.loads((run_dir / layout.METRICS).read_text())
+    assert m["psnr"] >= max(tests) - 2.0, (m["psnr"], tests)
+    assert m["psnr"] > 18.0
+    # the walls are kept (as the far-field layer behind the connected floor and objects) and nothing is a hole
+    assert m["far_field_faces"] > 0 and m["coverage"] >= 0.99
+    assert m["connected"] and m["mesh"]["largest_component_fraction"] > 0.9
+    assert m["health"]["ok"], m["health"]
+
+
+def test_a_forced_collapse_is_rolled_back_and_said(room, tmp_path):
+    """An absurd pruning threshold empties the soup at the first event: the run notices (faces below 10% of their
+    peak), rolls back, switches pruning off, and says so in the history and the metrics."""
+    run_dir = tmp_path / "collapse"
+    trainer = _room_trainer(room, run_dir, steps=300, prune_threshold_start=0.999, prune_max_fraction=1.0,
+                            output="soup", final_max_weight_pass=False)
+    trainer.train()
+    hist = _history(run_dir)
+    collapse = [h for h in hist if "collapse" in h]
+    assert collapse and "face count fell" in collapse[0]["collapse"]
+    assert any("recovery" in h and "pruning of the soup switched off" in h["recovery"] for h in hist)
+    m = json.loads((run_dir / layout.METRICS).read_text())
+    assert m["faces"] >= 0.1 * m["health"]["peak_faces"]
+    assert m["health"]["recoveries"] and all(c["recovered"] for c in trainer.health.collapses)
+
+
+def test_health_detects_face_and_psnr_collapses():
+    h = RunHealth()
+    assert h.observe_faces(0, 1000) is None and h.observe_faces(10, 2000) is None
+    assert h.observe_faces(20, 201) is None  # 90% lost is the limit, not past it
+    c = h.observe_faces(30, 199)
+    assert c is not None and c.kind == "faces" and c.peak == 2000 and c.peak_step == 10
+    assert h.observe_psnr(5, 20.0) is None and h.observe_psnr(6, 25.0) is None
+    assert h.observe_psnr(7, 22.5) is None  # 2.5 dB below the best: within the limit
+    c = h.observe_psnr(8, 21.9)
+    assert c is not None and c.kind == "psnr" and "25.00 dB" in c.message()
+    assert h.observe_psnr(9, float("nan")) is None
+    h.restart(100, 50_000)  # the connected surface: a new reference
+    assert h.peak_faces == 50_000 and h.best_psnr is None
+
+
+def test_verdict_refuses_a_bad_result_and_forgives_a_recovered_collapse():
+    h = RunHealth()
+    h.observe_faces(0, 1000)
+    h.observe_faces(1, 10)
+    assert not verdict(h, 25.0, 1.0)["ok"]  # a collapse nobody undid
+    h.recovered("rolled back")
+    v = verdict(h, 25.0, 1.0)
+    assert v["ok"] and v["recoveries"] == ["rolled back"]
+    v = verdict(RunHealth(), 4.2, 1.0)
+    assert not v["ok"] and "4.20 dB" in v["problems"][0]
+    v = verdict(RunHealth(), 25.0, 0.9)
+    assert not v["ok"] and "90.0%" in v["problems"][0]
+
+
+def test_oversized_rule_ignores_faces_off_screen():
+    """A face just in front of the camera plane but far off to the side projects to a huge triangle entirely outside
+    the image: it is not 'oversized' on screen (it was, and a room lost most of its faces to it)."""
+    from trisplat.train.losses import projected_edge_px
+
+    K = torch.tensor([[50.0, 0, 50], [0, 50.0, 50], [0, 0, 1]])
+    pos = torch.tensor([[5.0, 0.0, 0.02], [5.2, 0.0, 0.02], [5.0, 0.2, 0.02],  # off to the side, nearly in-plane
+                        [-0.5, -0.5, 0.6], [0.5, -0.5, 0.6], [0.0, 0.5, 0.6]])  # in front, filling the view
+    faces = torch.tensor([[0, 1, 2], [3, 4, 5]])
+    px = projected_edge_px(pos, faces, torch.eye(4), K, 0.01, 100, 100)
+    assert px[0] == 0.0 and px[1] > 80.0
+    assert projected_edge_px(pos, faces, torch.eye(4), K, 0.01)[0] > 400.0  # without the image size: the old rule
