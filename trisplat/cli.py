@@ -53,6 +53,13 @@ def main(argv: list[str] | None = None) -> int:
             raise
         print(f"trisplat {name}: error: {exc}", file=sys.stderr)
         return 1
+    except RuntimeError as exc:  # a run that stopped itself (diverged, collapsed) says why in one paragraph
+        from trisplat.train.trainer import TrainingCollapsed, TrainingDiverged
+
+        if not isinstance(exc, (TrainingCollapsed, TrainingDiverged)) or os.environ.get("TRISPLAT_DEBUG"):
+            raise
+        print(f"trisplat {name}: stopped: {exc}", file=sys.stderr)
+        return 4
 
 
 if __name__ == "__main__":

@@ -192,6 +192,39 @@ def pose_plain_photos(args: TrainArgs) -> TrainArgs:
     return _replace(args, data=posed_capture(args.data, progress=not args.quiet))
 
 
+# --minutes without --downscale: the training resolution follows the budget. About this many pixels per training
+# image per minute of budget keep a CPU run at several thousand steps (lego, 400x400 = 160k px, trains at full size
+# for 14 minutes and more; bonsai's 800x533 photos get half size at 30 minutes, fox's 1080x1920 a quarter)
+PIXELS_PER_BUDGET_MINUTE = 12_000
+
+
+def budget_downscale(width: int, height: int, minutes: float) -> int:
+    """The smallest downscale (1, 2, 4, 8) whose images have at most PIXELS_PER_BUDGET_MINUTE x minutes pixels."""
+    for factor in (1, 2, 4):
+        if (width / factor) * (height / factor) <= PIXELS_PER_BUDGET_MINUTE * minutes:
+            return factor
+    return 8
+
+
+def choose_downscale(args: TrainArgs, explicit: set[str]) -> TrainArgs:
+    """--minutes given, --downscale not (and not resuming): pick the training resolution from the time budget and
+    say so."""
+    cfg = args.config
+    if args.resume or "downscale" in explicit or not cfg.minutes:
+        return args
+    from trisplat.data import load_dataset
+
+    probe = load_dataset(args.data, prepare="lazy", test_every=0, format=cfg.data_format)
+    cam = probe.cameras[0]
+    factor = budget_downscale(cam.width, cam.height, cfg.minutes)
+    if factor != cfg.downscale:
+        print(f"--minutes {cfg.minutes:g}: training at 1/{factor} of the photos' size ({cam.width // factor}x"
+              f"{cam.height // factor} of {cam.width}x{cam.height}) to fit the budget (--downscale N to choose)",
+              file=sys.stderr, flush=True)
+        args = dataclasses.replace(args, config=dataclasses.replace(cfg, downscale=factor))
+    return args
+
+
 def main(argv: list[str]) -> int:
     preset = _preset_in(argv)
     default = TrainArgs(data=tyro.MISSING, out=tyro.MISSING, preset=preset,  # type: ignore[arg-type]
@@ -201,14 +234,28 @@ def main(argv: list[str]) -> int:
     args = tyro.cli(TrainArgs, args=argv, default=default, description=help_description(TrainArgs.__doc__), prog=PROG,
                     config=(tyro.conf.OmitArgPrefixes, tyro.conf.HelptextFromCommentsOff))
     args = pose_plain_photos(args)
+    explicit = explicit_fields(argv)
+    args = choose_downscale(args, explicit)
     try:
-        result = run_training(args, explicit_fields(argv))
+        result = run_training(args, explicit)
     except FileExistsError as exc:
         print(f"trisplat train: {exc}", file=sys.stderr)
         return 1
     m = result.metrics
     if m:
         lp = f", LPIPS {m['lpips']:.3f}" if m.get("lpips") is not None else ""
-        print(f"done in {result.wall_s / 60:.1f} min: test PSNR {m['psnr']:.2f} dB (hard), SSIM {m['ssim']:.3f}{lp}, "
-              f"{m['faces']} faces, {m['vertices']} vertices -> {result.run_dir}")
+        health = m.get("health") or {"ok": True, "problems": []}
+        what = "done" if health["ok"] else "finished, but the result is NOT trustworthy"
+        shape = ("one connected surface" if m.get("connected") else
+                 "a triangle soup (the switch to a surface failed or was given up)" if m.get("switch_failed") else
+                 "a triangle soup")
+        far = f" + a far field of {m['far_field_faces']} soup faces" if m.get("far_field_faces") else ""
+        cov = f", {100 * m['coverage']:.1f}% of test pixels covered" if m.get("coverage") is not None else ""
+        print(f"{what} in {result.wall_s / 60:.1f} min: test PSNR {m['psnr']:.2f} dB (hard), SSIM {m['ssim']:.3f}{lp}, "
+              f"{m['faces']} faces, {m['vertices']} vertices ({shape}{far}{cov}) -> {result.run_dir}")
+        for problem in health["problems"]:
+            print(f"  problem: {problem}")
+        for note in health.get("recoveries", []):
+            print(f"  recovered: {note}")
+        return 0 if health["ok"] else 3
     return 0

@@ -23,10 +23,14 @@ class SurfacePassResult:
     vertices_removed: int
 
 
-def final_surface_pass(ts: ops.TrainableScene, min_piece_fraction: float = MIN_PIECE_FRACTION) -> SurfacePassResult:
-    """Clean the face table of `ts` in place (see the module docstring); vertex rows are kept unless orphaned."""
+def final_surface_pass(ts: ops.TrainableScene, min_piece_fraction: float = MIN_PIECE_FRACTION,
+                       keep_last: int = 0) -> SurfacePassResult:
+    """Clean the face table of `ts` in place (see the module docstring); vertex rows are kept unless orphaned.
+    keep_last: the last rows of the face table (a far-field soup) are left as they are and stay the last rows."""
     pos = ts.params["positions"].detach().cpu().numpy().astype(np.float64)
-    faces = ts.faces.detach().cpu().numpy()
+    all_faces = ts.faces.detach().cpu().numpy()
+    keep_last = int(min(max(keep_last, 0), len(all_faces)))
+    faces, tail = all_faces[: len(all_faces) - keep_last], all_faces[len(all_faces) - keep_last:]
     F = len(faces)
     if F == 0:
         return SurfacePassResult(0, 0, 0, 0, 0)
@@ -38,6 +42,7 @@ def final_surface_pass(ts: ops.TrainableScene, min_piece_fraction: float = MIN_P
                                               drop_unreferenced_vertices=False))
     # weld=False and drop_unreferenced_vertices=False: the vertex table (and its indices) is unchanged
     assert len(res.vertex_source) == len(pos)
-    ops.set_faces(ts, torch.as_tensor(res.faces, dtype=torch.int64))
+    ops.set_faces(ts, torch.as_tensor(np.concatenate([np.asarray(res.faces, np.int64).reshape(-1, 3),
+                                                      tail.astype(np.int64)]), dtype=torch.int64))
     v_removed = ops.remove_orphan_vertices(ts)
     return SurfacePassResult(F, F - len(res.faces), int(small.sum()), int(res.num_flipped), v_removed)

@@ -25,6 +25,8 @@ from trisplat.scene.model import TriangleScene
 
 BOX_PERCENTILE = 0.5  # the box of the soup's vertices between these percentiles (per axis) ...
 BOX_MARGIN = 0.1  # ... grown by this fraction of its size on every side
+INNER_RADIUS = 1.0  # normalised frame: the half-side of the inner box of a capture without a content box (the cameras
+# lie within 1/1.1 of the centre); the soup beyond it is the far field (walls, distant furniture, sky) and stays a soup
 MIN_DEPTH_VOXELS = 3.0  # unseen space is solid at least this many voxels behind what was observed (a thinner shell
 # is breached by the noise of a coarse grid)
 
@@ -314,6 +316,45 @@ def soup_to_surface(scene: TriangleScene, cameras: Sequence, render: Callable[[i
     rep.faces, rep.vertices = out.num_faces, out.num_vertices
     rep.mesh_s = time.perf_counter() - t0
     return out, rep
+
+
+def inner_box(radius: float = INNER_RADIUS) -> np.ndarray:
+    """[2,3] the cube of half-side `radius` about the origin of the normalised frame: where the fused surface of a
+    capture without a content box is built (Mip-NeRF 360's unit ball, as a box)."""
+    return np.array([[-radius] * 3, [radius] * 3], dtype=np.float64)
+
+
+def far_field_mask(scene: TriangleScene, box: np.ndarray) -> np.ndarray:
+    """bool [F]: faces whose centroid lies outside `box` [2,3] (the far field of an unbounded capture)."""
+    pos = scene.positions.detach().cpu().numpy().astype(np.float64)
+    cen = pos[scene.faces.detach().cpu().numpy().astype(np.int64)].mean(1)
+    b = np.asarray(box, dtype=np.float64)
+    return ~((cen >= b[0]) & (cen <= b[1])).all(1)
+
+
+def sub_scene(scene: TriangleScene, face_mask: np.ndarray) -> TriangleScene:
+    """The faces where face_mask [F] is True with the vertices they use (re-indexed), SH, opacity logits, floor."""
+    faces = scene.faces.detach().cpu().numpy().astype(np.int64)[np.asarray(face_mask, bool)]
+    used = np.unique(faces.reshape(-1))
+    remap = np.full(scene.num_vertices, -1, np.int64)
+    remap[used] = np.arange(len(used))
+    idx = torch.as_tensor(used, dtype=torch.int64)
+    return TriangleScene(scene.positions.detach()[idx].clone(), scene.sh.detach()[idx].clone(),
+                         scene.opacity_logit.detach()[idx].clone(), torch.as_tensor(remap[faces], dtype=torch.int32),
+                         scene.opacity_floor)
+
+
+def append_scene(a: TriangleScene, b: TriangleScene) -> TriangleScene:
+    """`a` then `b` in one table (b's vertex and face rows after a's; a's opacity floor, b's realised opacities
+    kept: its logits are re-solved when the floors differ)."""
+    logit_b = b.opacity_logit.detach()
+    if abs(a.opacity_floor - b.opacity_floor) > 1e-12:
+        o = b.opacities().detach().clamp(a.opacity_floor + 1e-6, 1 - 1e-6)
+        logit_b = torch.logit((o - a.opacity_floor) / (1 - a.opacity_floor), eps=1e-6)
+    return TriangleScene(torch.cat([a.positions.detach(), b.positions.detach().to(a.positions)]),
+                         torch.cat([a.sh.detach(), b.sh.detach().to(a.sh)]),
+                         torch.cat([a.opacity_logit.detach(), logit_b.to(a.opacity_logit)]),
+                         torch.cat([a.faces, b.faces.to(a.faces) + a.num_vertices]), a.opacity_floor)
 
 
 def _manifold(verts: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

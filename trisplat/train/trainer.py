@@ -26,6 +26,7 @@ from trisplat.strategy.refine import accumulate_colour_gradient, refine_surface
 from trisplat.train import losses, schedules
 from trisplat.train.checkpoint import atomic_torch_save, checkpoint_state, load_checkpoint, restore_trainable
 from trisplat.train.config import TrainConfig
+from trisplat.train.health import RunHealth
 
 MAX_ROLLBACKS = 3
 MINUTES_WARMUP_STEPS = 10  # steps timed before a --minutes run sets its step count
@@ -35,6 +36,13 @@ ROLLBACK_FORGIVEN_AFTER_EPOCHS = 1  # epochs past a failed step after which its 
 
 class TrainingDiverged(RuntimeError):
     """NaN/Inf kept coming back after rolling back with lower learning rates."""
+
+
+class TrainingCollapsed(RuntimeError):
+    """The face count or the test PSNR collapsed again after rolling back and changing course (trisplat.train.health)."""
+
+
+MAX_COLLAPSE_RECOVERIES = 2  # collapses undone by a rollback and a change of course; the next one stops the run
 
 
 @dataclass
@@ -79,6 +87,13 @@ class Trainer:
         self.connected = False
         self.switch_failed = False  # the fusion switch found no surface: the run stays a soup
         self.surface_pass: dict | None = None
+        self.health = RunHealth()
+        self.prune_off = False  # pruning switched off after a collapse (a change of course)
+        self._best_state: dict | None = None  # in memory: the state at the best test PSNR so far (rollback target)
+        self.switch_s = 0.0  # seconds the switch took (not part of the --minutes budget)
+        self._untimed_s = 0.0  # seconds of the current step not counted in the budget (the switch)
+        self.far_faces = 0  # after the switch of a capture without a content box: the far-field soup faces, kept as
+        # the last rows of the face table (their vertices the last vertex rows) behind the connected surface
         self._last_prune = self._last_densify = self._last_refine = -(10**9)
         self.init_report = None  # what the initialisation did (when this trainer made the initial triangles)
         self.run_dir.mkdir(parents=True, exist_ok=True)
@@ -115,7 +130,8 @@ class Trainer:
         return {"clock": [self.clock.total, self.clock.anchor_step, self.clock.anchor_p], "wall_s": self.wall_s,
                 "last_prune": self._last_prune, "last_densify": self._last_densify, "last_refine": self._last_refine,
                 "lr_scale": self.lr_scale, "rollbacks": self.rollbacks, "failed_step": self._failed_step,
-                "connected": self.connected, "switch_failed": self.switch_failed,
+                "connected": self.connected, "switch_failed": self.switch_failed, "far_faces": self.far_faces,
+                "health": self.health.to_dict(), "prune_off": self.prune_off, "switch_s": self.switch_s,
                 "normalization": np.asarray(self.data.normalization).tolist()}
 
     def _restore(self, ckpt: dict) -> None:
@@ -130,6 +146,10 @@ class Trainer:
         self._failed_step = int(ckpt["extra"].get("failed_step", 0))
         self.connected = bool(ckpt["extra"].get("connected", False))
         self.switch_failed = bool(ckpt["extra"].get("switch_failed", False))
+        self.far_faces = int(ckpt["extra"].get("far_faces", 0))
+        self.health = RunHealth.from_dict(ckpt["extra"].get("health"))
+        self.prune_off = bool(ckpt["extra"].get("prune_off", False))
+        self.switch_s = float(ckpt["extra"].get("switch_s", 0.0))
         self._last_prune = int(ckpt["extra"].get("last_prune", -(10**9)))
         self._last_densify = int(ckpt["extra"].get("last_densify", -(10**9)))
         self._last_refine = int(ckpt["extra"].get("last_refine", -(10**9)))
@@ -240,7 +260,8 @@ class Trainer:
             st = self.ts.face_stats
             st["max_weight"] = torch.maximum(st["max_weight"], out.max_weight.detach())
             px = losses.projected_edge_px(self.ts.params["positions"].detach(), self.ts.faces,
-                                          torch.as_tensor(cam.world_to_camera, dtype=torch.float32), K, cfg.near)
+                                          torch.as_tensor(cam.world_to_camera, dtype=torch.float32), K, cfg.near,
+                                          cam.width, cam.height)
             st["max_screen_px"] = torch.maximum(st["max_screen_px"], px)
         return {"ok": True, "loss": float(loss.detach()), "psnr": psnr_value(out.rgb.detach().clamp(0, 1), gt)}
 
@@ -251,7 +272,12 @@ class Trainer:
         if self.step % n_train == 0:
             ts.roll_face_stats()
         if cfg.switch_at is not None and not self.connected and not self.switch_failed and p >= cfg.switch_at:
+            t_switch = time.perf_counter()
             self._connect()
+            self.switch_s += time.perf_counter() - t_switch
+            self._untimed_s += time.perf_counter() - t_switch
+            if self.connected:
+                self.health.restart(self.step, self.ts.num_faces)
             self._last_refine = self.step  # the first refinement judges a whole epoch of the surface's gradients
         if self._refining(p) and self.step - self._last_refine >= n_train and schedules.crossed(
                 p_prev, p, cfg.switch_at, cfg.surface_refine_until, cfg.densify_interval):
@@ -265,20 +291,27 @@ class Trainer:
         # densifications (they sample by the same statistics). Spacing only one of them let short runs (fewer steps
         # per event than views) densify at every event and prune at every other: a 10-minute lego trial grew to
         # 122k faces at half time; the 30-minute lego bench (~170 steps per event, so never throttled) peaked at 58k.
-        if seen_all_views and not self.connected and self.step - self._last_prune >= n_train and schedules.crossed(
+        if seen_all_views and not self.connected and not self.prune_off and self.step - self._last_prune >= n_train \
+                and schedules.crossed(
                 p_prev, p, cfg.prune_from, cfg.prune_until, cfg.prune_interval):
             cam = self.data.cameras[self.data.train_indices[0]]
-            prune(ts, schedules.prune_threshold(p, cfg), cfg.prune_max_screen_frac * max(cam.width, cam.height),
-                  cfg.prune_max_fraction)
+            res = prune(ts, schedules.prune_threshold(p, cfg), cfg.prune_max_screen_frac * max(cam.width, cam.height),
+                        cfg.prune_max_fraction)
             self._last_prune = self.step
+            self._log({"step": self.step, "prune": {**res.to_dict(), "threshold": schedules.prune_threshold(p, cfg)}})
         if seen_all_views and not self.connected and self.step - self._last_densify >= n_train and schedules.crossed(
                 p_prev, p, cfg.densify_from, cfg.densify_until, cfg.densify_interval):
-            densify(ts, cfg.densify_growth, cfg.max_vertices, cfg.densify_largest, cfg.min_face_px, self.generator)
+            res = densify(ts, cfg.densify_growth, cfg.max_vertices, cfg.densify_largest, cfg.min_face_px,
+                          self.generator)
             self._last_densify = self.step
+            self._log({"step": self.step, "densify": {"faces_selected": res.faces_selected,
+                                                      "vertices_added": res.vertices_added, "faces": ts.num_faces}})
 
     def _refining(self, p: float) -> bool:
         """Whether the connected surface is being refined at progress p (trisplat.strategy.refine)."""
-        return self.connected and self.cfg.surface_refine_growth > 1.0 and p < self.cfg.surface_refine_until
+        # (refinement re-orders the face table: not with a far field, whose faces must stay the last rows)
+        return (self.connected and self.cfg.surface_refine_growth > 1.0 and p < self.cfg.surface_refine_until
+                and not self.far_faces)
 
     def _connect(self) -> None:
         """The stage-2 switch: the soup becomes one connected surface (cfg.connect_method), then fine-tuning. The
@@ -305,7 +338,14 @@ class Trainer:
 
     @torch.no_grad()
     def _connect_fusion(self) -> None:
-        from trisplat.train.switch import SurfaceConfig, soup_to_surface
+        from trisplat.train.switch import (
+            SurfaceConfig,
+            append_scene,
+            far_field_mask,
+            inner_box,
+            soup_to_surface,
+            sub_scene,
+        )
 
         cfg, p = self.cfg, self.clock.p(self.step)
         train = [int(i) for i in self.data.train_indices]
@@ -318,26 +358,35 @@ class Trainer:
         say = (lambda m: print(f"switch: {m}", file=sys.stderr, flush=True)) if self.show_progress else None
         if say:
             say(f"step {self.step}: fusing the soup's depth in {len(train)} training views into one surface")
+        # an object capture (alpha masks) has its content box; a real capture has none: its walls, floor and
+        # distant content reach far beyond the cameras. There the surface is fused in the inner box (the unit cube
+        # of the normalised frame, where the cameras are) and the soup beyond it is kept as a far-field layer
+        masked = self.data.load_alpha(train[0]) is not None
+        soup = self.ts.to_scene()
+        box = self.data.bounds if masked else inner_box()
         try:
-            # an object capture (alpha masks) has its content box; a real scene's walls and floor lie beyond the
-            # sparse points' box, so there the soup's own extent is fused
-            masked = self.data.load_alpha(train[0]) is not None
             surface, report = soup_to_surface(
-                self.ts.to_scene(), [self.data.cameras[i] for i in train], lambda n: self.render(train[n], p),
-                self.data.bounds if masked else None, scfg, say, images=lambda n: self.data.load_image(train[n]))
-        except ValueError as exc:
+                soup, [self.data.cameras[i] for i in train], lambda n: self.render(train[n], p), box, scfg, say,
+                images=lambda n: self.data.load_image(train[n]))
+        except (ValueError, MemoryError, RuntimeError) as exc:
             # hours of training are not thrown away: the run goes on as a soup and says why
             self.switch_failed = True
-            msg = (f"the switch to a connected surface at step {self.step} failed ({exc}); training goes on with the "
-                   "soup (try a later --connect-at)")
+            msg = (f"the switch to a connected surface at step {self.step} failed ({type(exc).__name__}: {exc}); "
+                   "training goes on with the soup (try a later --connect-at)")
             self._log({"step": self.step, "switch_failed": msg})
             print(f"warning: {msg}", file=sys.stderr, flush=True)
             return
+        far = far_field_mask(soup, box) if not masked else np.zeros(soup.num_faces, bool)
+        if far.any():
+            surface = append_scene(surface, sub_scene(soup, far))
+            report.notes.append(f"{int(far.sum())} soup faces outside the inner box kept as the far field")
+        self.far_faces = int(far.sum())
         ops.replace_scene(self.ts, surface)
         self.connected = True
-        self._log({"step": self.step, "wall_s": round(self.wall_s, 3), "switch": report.to_dict()})
+        self._log({"step": self.step, "wall_s": round(self.wall_s, 3), "switch": report.to_dict(),
+                   "far_faces": self.far_faces})
         if say:
-            say(report.summary())
+            say(report.summary() + (f"; far field: {self.far_faces} soup faces" if self.far_faces else ""))
 
     def _rollback(self) -> None:
         """Back to the last good state with half the learning rates. The scale keeps halving over repeated
@@ -352,6 +401,39 @@ class Trainer:
         rollbacks, lr_scale, failed_step = self.rollbacks, self.lr_scale, self.step
         self._restore(self._last_good)
         self.rollbacks, self.lr_scale, self._failed_step = rollbacks, 0.5 * lr_scale, failed_step
+
+    def _on_collapse(self, collapse, bar) -> None:
+        """A collapse (trisplat.train.health): roll back to the best state kept (the last checkpoint when there is
+        none yet) and change course: no more pruning of the soup, half the learning rates; a collapse after the
+        switch whose best state is the soup gives the switch up (the run goes on as a soup). After
+        MAX_COLLAPSE_RECOVERIES the run stops with TrainingCollapsed."""
+        msg = collapse.message()
+        self._log({"step": self.step, "collapse": msg})
+        bar.write(f"warning: {msg}")
+        done = sum(1 for c in self.health.collapses if c.get("recovered"))
+        if done >= MAX_COLLAPSE_RECOVERIES:
+            self.save_checkpoint()
+            raise TrainingCollapsed(
+                f"{msg}, after {done} rollbacks with a change of course; the run stops here (its checkpoint is "
+                f"{self.run_dir / layout.CHECKPOINT}). The capture may lack overlap or its poses may be wrong: "
+                "check `trisplat info` and the poses report, or try --output soup or a longer --minutes.")
+        target = self._best_state if self._best_state is not None else self._last_good
+        wall_s, health, was_connected = self.wall_s, self.health, self.connected
+        self._restore(target)
+        self.wall_s, self.health = wall_s, health  # time spent stays spent; the record of the run stays
+        changes = []
+        if not self.connected:
+            self.prune_off = True
+            changes.append("pruning of the soup switched off")
+        if was_connected and not self.connected:
+            self.switch_failed = True
+            changes.append("the connected surface given up (the run goes on as a soup)")
+        self.lr_scale *= 0.5
+        changes.append("learning rates halved")
+        note = f"rolled back to step {self.step}; {', '.join(changes)}"
+        self.health.recovered(note)
+        self._log({"step": self.step, "recovery": note})
+        bar.write(f"         {note}")
 
     def _forgive_rollbacks(self) -> None:
         """A run that got well past the step that failed has recovered: later NaNs start a fresh count (the lowered
@@ -440,7 +522,14 @@ class Trainer:
             t0 = time.perf_counter()
             p_prev = self.clock.p(self.step - 1) if self.step > 0 else -1.0
             p = self.clock.p(self.step)
+            self._untimed_s = 0.0
             self._strategy(p_prev, p)
+            if not self.connected:
+                collapse = self.health.observe_faces(self.step, self.ts.num_faces)
+                if collapse is not None:
+                    self._on_collapse(collapse, bar)
+                    show_progress()
+                    continue
             info = self.train_step()
             if not info["ok"]:
                 self._rollback()
@@ -450,7 +539,9 @@ class Trainer:
                 continue
             self.step += 1
             self._forgive_rollbacks()
-            dt = time.perf_counter() - t0
+            # the switch's own time is not part of the --minutes budget (like compiling and evaluations): in a
+            # short run it ate the whole fine-tuning (a 4-minute room trial: 114 s switch, 6 steps left)
+            dt = time.perf_counter() - t0 - self._untimed_s
             self.wall_s += dt
             window = (window + [dt])[-50:]
             if not planned and len(window) >= MINUTES_WARMUP_STEPS:
@@ -473,6 +564,15 @@ class Trainer:
                 self._log({"step": self.step, "wall_s": round(self.wall_s, 3), "test_psnr": test_psnr,
                            "faces": self.ts.num_faces})
                 bar.write(f"step {self.step}: test PSNR {test_psnr:.2f} dB ({self.ts.num_faces} faces)")
+                best_before = self.health.best_psnr
+                collapse = self.health.observe_psnr(self.step, test_psnr)
+                if collapse is not None:
+                    self._on_collapse(collapse, bar)
+                    show_progress()
+                    continue
+                if self.health.best_psnr != best_before:  # a new best: the state to come back to
+                    self._best_state = checkpoint_state(self.ts, self.step, self.clock.total, self.generator,
+                                                        self._extra())
             if self.wall_s - float(self._last_good["extra"]["wall_s"]) >= cfg.checkpoint_every_s:
                 self.save_checkpoint()
             show_progress()
@@ -497,7 +597,7 @@ class Trainer:
 
         views = list(self.data.test_indices)[:8]
         before = self.evaluate_hard(views)
-        res = final_surface_pass(self.ts)
+        res = final_surface_pass(self.ts, keep_last=self.far_faces)
         out = {"faces_removed": res.faces_removed, "pieces_removed": res.pieces_removed,
                "faces_flipped": res.faces_flipped, "views": len(views), "psnr_before": before,
                "psnr_after": self.evaluate_hard(views) if res.faces_removed else before}
@@ -527,9 +627,47 @@ class Trainer:
         if self.connected:
             self.surface_pass = self._final_surface_pass()
         metrics = write_outputs(self, pruned)
+        metrics.update(self._run_verdict(metrics))
+        atomic_write_text(self.run_dir / layout.METRICS, json.dumps(metrics, indent=2))
         self.wall_s += time.perf_counter() - t0
         self._write_state(finished=True)
         return metrics
+
+    @torch.no_grad()
+    def test_coverage(self) -> float | None:
+        """Fraction of the test pixels (all test views, pixel centres) the final opaque mesh covers."""
+        from trisplat.render import rasterize_hard
+
+        scene, covered, total = self.ts.to_scene(), 0.0, 0
+        for i in self.data.test_indices:
+            cam = self.data.cameras[int(i)]
+            out = rasterize_hard(scene.positions, scene.faces, scene.sh, torch.as_tensor(cam.world_to_camera,
+                                 dtype=torch.float32), torch.as_tensor(cam.K, dtype=torch.float32), cam.width,
+                                 cam.height, self.background, near=self.cfg.near)
+            covered += float((out.alpha > 0.5).sum())
+            total += cam.width * cam.height
+        return covered / total if total else None
+
+    def _run_verdict(self, metrics: dict) -> dict:
+        """What the run says about itself (trisplat.train.health.verdict): coverage of the test views, collapses,
+        the final PSNR against the best seen; with a far field, the connected surface's own statistics."""
+        from trisplat.train.health import verdict
+
+        coverage = self.test_coverage()
+        extra = {"coverage": coverage, "switch_s": self.switch_s, "far_field_faces": self.far_faces,
+                 "history_faces_peak": self.health.peak_faces}
+        if self.far_faces:
+            from trisplat.mesh.stats import mesh_statistics
+            from trisplat.train.switch import sub_scene
+
+            scene = self.ts.to_scene()
+            surface = sub_scene(scene, np.arange(scene.num_faces) < scene.num_faces - self.far_faces)
+            st = mesh_statistics(surface.positions.numpy(), surface.faces.numpy()).to_dict()
+            extra["mesh"] = {**metrics.get("mesh", {}), **{k: st[k] for k in metrics.get("mesh", {}) if k in st},
+                             "of": "the connected surface (without the far-field soup)"}
+            extra["surface_faces"] = surface.num_faces
+        extra["health"] = verdict(self.health, metrics.get("psnr"), coverage)
+        return extra
 
 
 def _all_finite(t: torch.Tensor) -> bool:

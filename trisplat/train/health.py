@@ -1,0 +1,114 @@
+"""A run that watches itself: the face count and the held-out PSNR through training, collapse detection, the verdict.
+
+Two signs of a run going wrong (issue 24: a real capture's soup fell from 37k faces to 15 and ended at 4 dB while the
+run reported success):
+- the face count falls by more than `max_face_drop` (a fraction) from its peak;
+- the test PSNR falls more than `max_psnr_drop` dB below its best.
+The trainer reacts (see Trainer._on_collapse): it rolls back to the best state it kept and changes course (pruning
+off for the soup), and stops with a clear message when that does not help. At the end the verdict says whether the
+result can be trusted; the final line, metrics.json and the report show it.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+MAX_FACE_DROP = 0.9  # a face count below (1 - this) x its peak is a collapse
+MAX_PSNR_DROP = 3.0  # dB: a test PSNR this far below its best is a collapse
+MIN_TRUSTED_PSNR = 15.0  # dB: a final test PSNR below this is reported as a failed reconstruction, whatever happened
+MIN_COVERAGE = 0.99  # fraction of test pixels the final mesh covers; below it the result has holes
+
+
+@dataclass
+class Collapse:
+    """One detected collapse: what fell, from what to what, at which step."""
+
+    step: int
+    kind: str  # "faces" | "psnr"
+    peak: float
+    peak_step: int
+    now: float
+
+    def message(self) -> str:
+        if self.kind == "faces":
+            return (f"the face count fell from {self.peak:.0f} (step {self.peak_step}) to {self.now:.0f} at step "
+                    f"{self.step} ({100 * (1 - self.now / max(self.peak, 1)):.0f}% lost)")
+        return (f"the test PSNR fell from {self.peak:.2f} dB (step {self.peak_step}) to {self.now:.2f} dB at step "
+                f"{self.step}")
+
+
+@dataclass
+class RunHealth:
+    """Running record of the face count and the test PSNR; `observe_*` return a Collapse when one is detected.
+
+    The face peak and the best PSNR restart after the switch to a connected surface (`restart`): a surface has
+    another face count than the soup it came from, and its first PSNR is the new reference."""
+
+    max_face_drop: float = MAX_FACE_DROP
+    max_psnr_drop: float = MAX_PSNR_DROP
+    peak_faces: int = 0
+    peak_faces_step: int = 0
+    best_psnr: float | None = None
+    best_psnr_step: int = 0
+    last_psnr: float | None = None
+    collapses: list[dict] = field(default_factory=list)
+    recoveries: list[str] = field(default_factory=list)
+
+    def observe_faces(self, step: int, faces: int) -> Collapse | None:
+        if faces > self.peak_faces:
+            self.peak_faces, self.peak_faces_step = int(faces), int(step)
+            return None
+        if self.peak_faces and faces < (1.0 - self.max_face_drop) * self.peak_faces:
+            return self._record(Collapse(int(step), "faces", float(self.peak_faces), self.peak_faces_step,
+                                         float(faces)))
+        return None
+
+    def observe_psnr(self, step: int, psnr: float) -> Collapse | None:
+        if psnr != psnr:  # nan: no test views
+            return None
+        self.last_psnr = float(psnr)
+        if self.best_psnr is None or psnr > self.best_psnr:
+            self.best_psnr, self.best_psnr_step = float(psnr), int(step)
+            return None
+        if psnr < self.best_psnr - self.max_psnr_drop:
+            return self._record(Collapse(int(step), "psnr", self.best_psnr, self.best_psnr_step, float(psnr)))
+        return None
+
+    def restart(self, step: int, faces: int) -> None:
+        """After the switch: a new face peak (the surface's) and a new best PSNR."""
+        self.peak_faces, self.peak_faces_step = int(faces), int(step)
+        self.best_psnr, self.best_psnr_step = None, int(step)
+
+    def _record(self, c: Collapse) -> Collapse:
+        self.collapses.append(asdict(c) | {"message": c.message(), "recovered": False})
+        return c
+
+    def recovered(self, what: str) -> None:
+        """The last collapse was undone (rolled back, course changed): say how."""
+        if self.collapses:
+            self.collapses[-1]["recovered"] = True
+        self.recoveries.append(what)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @staticmethod
+    def from_dict(d: dict | None) -> RunHealth:
+        return RunHealth(**d) if d else RunHealth()
+
+
+def verdict(health: RunHealth, final_psnr: float | None, coverage: float | None) -> dict:
+    """{"ok": bool, "problems": [...]} for a finished run: collapses that were not undone, a final test PSNR below
+    MIN_TRUSTED_PSNR, or a mesh covering less than MIN_COVERAGE of the test pixels."""
+    problems = [f"collapse: {c['message']}" for c in health.collapses if not c.get("recovered")]
+    if final_psnr is not None and final_psnr == final_psnr and final_psnr < MIN_TRUSTED_PSNR:
+        problems.append(f"the final test PSNR is {final_psnr:.2f} dB (below {MIN_TRUSTED_PSNR:g} dB): the mesh does "
+                        "not look like the photos")
+    if health.best_psnr is not None and final_psnr is not None and final_psnr == final_psnr and \
+            final_psnr < health.best_psnr - health.max_psnr_drop:
+        problems.append(f"the final test PSNR ({final_psnr:.2f} dB) is more than {health.max_psnr_drop:g} dB below "
+                        f"the best seen during training ({health.best_psnr:.2f} dB)")
+    if coverage is not None and coverage < MIN_COVERAGE:
+        problems.append(f"the mesh covers {100 * coverage:.1f}% of the test pixels (holes; below "
+                        f"{100 * MIN_COVERAGE:g}%)")
+    return {"ok": not problems, "problems": problems, "recoveries": list(health.recoveries),
+            "peak_faces": health.peak_faces, "best_test_psnr": health.best_psnr}
