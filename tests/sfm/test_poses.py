@@ -25,9 +25,9 @@ def test_photos_register_and_cameras_match_the_truth(synthetic_frames, synthetic
     err = camera_centre_error(est, {f"{c.name}.png": c.center for c in cams})
     assert err.n == len(cams)
     assert err.max_fraction < MAX_CENTRE_ERROR, err.as_dict()
-    # camera model 'auto': OPENCV leaves fy unconstrained on this one-height arc, so the fit is refused and the
-    # views are mapped again with SIMPLE_RADIAL, whose focal length matches the renderer's
-    assert report.camera_model == "SIMPLE_RADIAL" and any("fx/fy" in w for w in report.warnings), report.warnings
+    # camera model 'auto': square pixels first (RADIAL: one focal length, k1, k2), in one mapping; OPENCV's free fy
+    # came out wrong on this one-height arc. Its focal length matches the renderer's
+    assert report.camera_model == "RADIAL" and not any("mapped again" in w for w in report.warnings), report.warnings
     assert report.camera_params[0] == pytest.approx(cams[0].K[0, 0], rel=0.02)
     saved = json.loads((out / "poses.json").read_text())
     assert saved["registered"] == names and saved["registered_fraction"] == 1.0
@@ -103,7 +103,7 @@ def test_too_few_registered_names_the_images(synthetic_frames, tmp_path):
 
 
 def test_distorted_copy_loads_and_is_undistorted_by_the_loader(synthetic_frames, synthetic_capture, tmp_path):
-    """--no-undistort: the original photos with the SIMPLE_RADIAL model; trisplat's loader undistorts them."""
+    """--no-undistort: the original photos with the RADIAL model; trisplat's loader undistorts them."""
     from trisplat.data import load_dataset
     from trisplat.sfm.pipeline import WORK, _copy_distorted
 
@@ -113,5 +113,5 @@ def test_distorted_copy_loads_and_is_undistorted_by_the_loader(synthetic_frames,
     _copy_distorted(out / WORK / "sparse" / "0", folder, report.registered, copy)
     data = load_dataset(copy, prepare="lazy", test_every=0)
     assert len(data.cameras) == len(cams)
-    assert {c.extras.get("source_model") for c in data.cameras} == {"SIMPLE_RADIAL"}
+    assert {c.extras.get("source_model") for c in data.cameras} == {"RADIAL"}
     assert (copy / "images" / "frame_000.png").read_bytes() == (folder / "frame_000.png").read_bytes()

@@ -9,7 +9,7 @@ from dataclasses import asdict, replace
 from pathlib import Path
 
 from trisplat.sfm.inputs import find_images, is_video
-from trisplat.sfm.pipeline import REPORT, WORK, PosesOptions, run_poses
+from trisplat.sfm.pipeline import POSES_VERSION, REPORT, WORK, PosesOptions, run_poses
 
 FINGERPRINT = "source.json"  # in OUT/distorted: what the cached capture was computed from
 
@@ -26,7 +26,7 @@ def fingerprint(source: Path, options: PosesOptions) -> dict:
     source = Path(source).resolve()
     files = [source] if is_video(source) else find_images(source)
     opts = asdict(replace(options, force=False, verbose=False))
-    return {"source": str(source), "files": [[p.name, p.stat().st_size, p.stat().st_mtime_ns] for p in files],
+    return {"pipeline": POSES_VERSION, "source": str(source), "files": [[p.name, p.stat().st_size, p.stat().st_mtime_ns] for p in files],
             "options": opts}
 
 

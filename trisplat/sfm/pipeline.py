@@ -37,8 +37,13 @@ from trisplat.sfm.pairs import exhaustive_pairs, loop_pairs, retrieval_similarit
 MATCHERS = ("auto", "exhaustive", "sequential")
 CAMERA_MODES = ("single", "per-image")
 CAMERA_MODELS = ("auto", "SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
-AUTO_FIRST, AUTO_FALLBACK = "OPENCV", "SIMPLE_RADIAL"
-MAX_ASPECT_DEVIATION = 0.03  # |fx / fy - 1| above which an OPENCV fit is refused (real pixels are square)
+# camera model 'auto': square pixels first (every phone and camera has them): RADIAL is OPENCV with fx = fy and no
+# tangential terms (f, cx, cy, k1, k2). OPENCV's free fy was poorly constrained on orbits at one height (4.6x the truth
+# on a synthetic arc; fx/fy 1.077 on bonsai), and its refusal fell back to a fresh SIMPLE_RADIAL mapping whose focal
+# length on bonsai (829 px) disagreed with another self-calibration (~1188 px): two mappings, and the weaker model.
+# SIMPLE_RADIAL (one radial term) is the fallback only when RADIAL registers too few images.
+AUTO_FIRST, AUTO_FALLBACK = "RADIAL", "SIMPLE_RADIAL"
+POSES_VERSION = 2  # part of the cache fingerprint: a capture posed by an older pipeline is posed again
 REPORT = "poses.json"
 WORK = "distorted"
 FEW_FEATURES = 100  # images with fewer SIFT features than this are named in failure messages as a likely cause
@@ -53,10 +58,10 @@ class PosesOptions:
         sequence (retrieval with a vocabulary built from the capture's own descriptors); 'auto' = exhaustive up to
         `exhaustive_max` photos, sequential for more and for videos.
     camera_model: COLMAP model estimated (one camera shared by all images with camera_mode 'single'). 'auto' fits
-        OPENCV (fx, fy, k1, k2, p1, p2: phone lenses; on fox it reproduced the given model's intrinsics to 0.03%)
-        and, when the fit gives non-square pixels (|fx/fy - 1| > MAX_ASPECT_DEVIATION: fy is poorly constrained,
-        e.g. on an orbit at one height, where it came out 4.6x the truth), maps again with SIMPLE_RADIAL (one
-        focal length, one radial term: COLMAP's default) from the same matches.
+        RADIAL (square pixels, as on every phone and camera: one focal length, principal point, k1, k2; OPENCV
+        with fx = fy and no tangential terms) and maps again with SIMPLE_RADIAL (one radial term: COLMAP's
+        default) from the same matches only when RADIAL registers fewer than `min_registered` of the images.
+        OPENCV (free fy) is still available by name; its fy was poorly constrained on orbits at one height.
     max_image_size: SIFT runs on images downscaled to this longest side, pixels (the mapping and undistortion use
         full-size images).
     min_registered: fail (naming the images left out) when fewer than this fraction of the images register.
@@ -299,16 +304,6 @@ def _map(db: Path, image_dir: Path, work: Path, n_images: int, seed: int, progre
     return list(models.values())
 
 
-def _worst_aspect(rec) -> float:
-    """fx / fy of the camera whose ratio is farthest from 1 (1 for single-focal models)."""
-    worst = 1.0
-    for cam in rec.cameras.values():
-        fx, fy = cam.focal_length_x, cam.focal_length_y
-        if fy > 0 and abs(fx / fy - 1.0) > abs(worst - 1.0):
-            worst = fx / fy
-    return worst
-
-
 def _set_camera_model(db: Path, model: str) -> None:
     """Switch every camera of the database to `model`, from its initial focal length and principal point."""
     import pycolmap
@@ -470,16 +465,17 @@ def run_poses(source: str | Path, out: str | Path, options: PosesOptions | None 
         needed = max(MIN_IMAGES, math.ceil(opts.min_registered * len(names)))
         t = head("incremental mapping")
         models = _map(db, image_dir, work, len(names), opts.seed, progress)
-        if opts.camera_model == "auto" and models:
-            best = max(models, key=lambda r: (r.num_reg_images(), r.num_points3D()))
-            aspect = _worst_aspect(best)
-            if abs(aspect - 1.0) > MAX_ASPECT_DEVIATION:
-                note = (f"the {AUTO_FIRST} fit gave fx/fy = {aspect:.3f} (non-square pixels: fy is poorly "
-                        f"constrained by these views); mapped again with {AUTO_FALLBACK}")
+        if opts.camera_model == "auto":
+            registered_first = max((r.num_reg_images() for r in models), default=0)
+            if registered_first < needed:
+                note = (f"the {AUTO_FIRST} fit registered {registered_first} of {len(names)} images (fewer than "
+                        f"{needed}); mapped again with {AUTO_FALLBACK}")
                 say(f"      {note}")
                 warnings.append(note)
                 _set_camera_model(db, AUTO_FALLBACK)
-                models = _map(db, image_dir, work, len(names), opts.seed, progress)
+                fallback = _map(db, image_dir, work, len(names), opts.seed, progress)
+                if max((r.num_reg_images() for r in fallback), default=0) > registered_first:
+                    models = fallback
         times["mapping"] = time.perf_counter() - t
         if not models:
             raise _failure(0, names, set(), feats["features"], per_image, needed, source, work)
