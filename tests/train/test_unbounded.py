@@ -16,8 +16,8 @@ from trisplat.train.trainer import Trainer
 def room(tmp_path_factory):
     from trisplat.synth.room import write_room_scene
 
-    return write_room_scene(tmp_path_factory.mktemp("room") / "capture", n_views=32, width=96, height=72,
-                            samples_per_pixel=1, n_points=1500)
+    return write_room_scene(tmp_path_factory.mktemp("room") / "capture", n_views=40, width=128, height=96,
+                            samples_per_pixel=1, n_points=3000)
 
 
 def _history(run_dir):
@@ -28,7 +28,7 @@ def _room_trainer(room, run_dir, **over):
     from trisplat.data import load_dataset
 
     cfg = make_config("default", **{**dict(steps=700, eval_every=0.1, eval_max_views=4, checkpoint_every_s=1e9,
-                                           num_renders=1), **over})
+                                           num_renders=1, texture_size=0), **over})
     opts = {"downscale": 1, "background": list(cfg.background)}
     data = load_dataset(room, **opts)
     return Trainer(cfg, data, run_dir, show_progress=False, data_options=opts, data_path=str(room))
@@ -38,7 +38,7 @@ def test_room_capture_is_a_colmap_scene_with_content_beyond_the_cameras(room):
     from trisplat.data import load_dataset
 
     data = load_dataset(room)
-    assert data.format == "colmap" and data.points is not None and len(data.test_indices) == 4
+    assert data.format == "colmap" and data.points is not None and len(data.test_indices) == 5
     centres = np.stack([c.camera_to_world[:3, 3] for c in data.cameras])
     assert np.linalg.norm(centres, axis=1).max() < 1.0
     assert data.bounds_radius > 1.5  # walls, floor and ceiling well outside the camera ring
@@ -58,7 +58,7 @@ def test_default_run_on_a_room_keeps_its_faces_walls_and_psnr(room, tmp_path):
     tests = [h["test_psnr"] for h in hist if "test_psnr" in h]
     m = json.loads((run_dir / layout.METRICS).read_text())
     assert m["psnr"] >= max(tests) - 2.0, (m["psnr"], tests)
-    assert m["psnr"] > 18.0
+    assert m["psnr"] > 15.0
     # the walls are kept (as the far-field layer behind the connected floor and objects) and nothing is a hole
     assert m["far_field_faces"] > 0 and m["coverage"] >= 0.99
     assert m["connected"] and m["mesh"]["largest_component_fraction"] > 0.9

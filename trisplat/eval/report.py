@@ -201,12 +201,32 @@ def plot_history(history: Sequence[dict], path: Path, final_psnr: float | None =
         ax = axes[1, col]
         if faces:
             ax.plot([h.get(key, math.nan) for h in faces], [h["faces"] for h in faces], color="C1")
+        _mark_events(axes[:, col], rows, key)
         ax.set_xlabel(label)
         ax.set_ylabel("faces")
         ax.grid(alpha=0.3)
     fig.savefig(path, dpi=90)
     plt.close(fig)
     return path
+
+
+def _mark_events(axes, rows: Sequence[dict], key: str) -> None:
+    """Vertical lines where the run switched to a connected surface (green), collapsed (red) and rolled back
+    (orange, dashed), so a face count or PSNR that falls can be read against what the run did."""
+    last = {}
+    for h in rows:  # rows without the x key (the rollback's) take the position of the record before them
+        if key in h:
+            last[key] = h[key]
+        x = h.get(key, last.get(key))
+        if x is None:
+            continue
+        style = (dict(color="C2", ls="-", label="switch to a surface") if "switch" in h else
+                 dict(color="C3", ls="-", label="collapse") if "collapse" in h else
+                 dict(color="C1", ls="--", label="rolled back") if "recovery" in h else None)
+        if style is None:
+            continue
+        for ax in axes:
+            ax.axvline(x, lw=1, alpha=0.8, **style)
 
 
 def _stats_dict(mesh_stats) -> dict | None:

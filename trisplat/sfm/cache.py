@@ -26,7 +26,8 @@ def fingerprint(source: Path, options: PosesOptions) -> dict:
     source = Path(source).resolve()
     files = [source] if is_video(source) else find_images(source)
     opts = asdict(replace(options, force=False, verbose=False))
-    return {"pipeline": POSES_VERSION, "source": str(source), "files": [[p.name, p.stat().st_size, p.stat().st_mtime_ns] for p in files],
+    return {"pipeline": POSES_VERSION, "source": str(source),
+            "files": [[p.name, p.stat().st_size, p.stat().st_mtime_ns] for p in files],
             "options": opts}
 
 

@@ -113,6 +113,14 @@ class TrainConfig:
     vertex_depth_max_diff: float = 0.5
     """Vertex-depth term only for |vertex depth - rendered depth| below this (scene units, normalised frame)."""
 
+    # -- per-photo colour (trisplat.train.exposure)
+    exposure: Literal["auto", "on", "off"] = "auto"
+    """Learn an affine colour correction per training photo (exposure, white balance), applied to the render in the
+    loss only; test scores and files use the uncorrected scene. auto: on for captures without alpha (real photos),
+    off for synthetic object captures (alpha)."""
+    lr_exposure: float = 5e-3
+    """Adam learning rate of the per-photo colour corrections."""
+
     # -- pruning (of the soup; none after the switch to a connected surface)
     prune_from: float = 4_000 / PAPER_STEPS
     """Progress (0-1) of the first pruning event: faces whose min vertex opacity or max blending weight is at or
@@ -250,6 +258,8 @@ class TrainConfig:
             raise ValueError(f"output must be 'surface' or 'soup', got {self.output!r}")
         if self.connect_method not in ("fusion", "restricted_delaunay"):
             raise ValueError(f"connect_method must be 'fusion' or 'restricted_delaunay', got {self.connect_method!r}")
+        if self.exposure not in ("auto", "on", "off"):
+            raise ValueError(f"exposure must be 'auto', 'on' or 'off', got {self.exposure!r}")
         if self.connect_at is not None and not 0.0 <= self.connect_at <= 1.0:
             raise ValueError(f"connect_at must be a progress in [0, 1] or None, got {self.connect_at}")
 

@@ -112,3 +112,28 @@ def verdict(health: RunHealth, final_psnr: float | None, coverage: float | None)
                         f"{100 * MIN_COVERAGE:g}%)")
     return {"ok": not problems, "problems": problems, "recoveries": list(health.recoveries),
             "peak_faces": health.peak_faces, "best_test_psnr": health.best_psnr}
+
+
+def add_to_report(page, health: dict) -> None:
+    """Put the verdict at the top of the run's HTML report (after its first heading): a red box listing the
+    problems when the result is not trustworthy, a line naming the recoveries otherwise."""
+    import html
+    from pathlib import Path
+
+    page = Path(page)
+    if not page.is_file():
+        return
+    text = page.read_text()
+    if health["ok"]:
+        body = "<p id='health'>Run health: ok" + (
+            " (recovered: " + "; ".join(html.escape(r) for r in health["recoveries"]) + ")"
+            if health["recoveries"] else "") + "</p>"
+    else:
+        items = "".join(f"<li>{html.escape(p)}</li>" for p in health["problems"])
+        body = ("<div id='health' style='border:2px solid #c00;padding:6px 12px;background:#fee'><b>This result is "
+                f"not trustworthy.</b><ul>{items}</ul></div>")
+    at = text.find("</h1>")
+    at = at + len("</h1>") if at >= 0 else text.find("<body>") + len("<body>")
+    from trisplat.io.atomic import atomic_write_text
+
+    atomic_write_text(page, text[:at] + body + text[at:])

@@ -92,6 +92,12 @@ class Trainer:
         self._best_state: dict | None = None  # in memory: the state at the best test PSNR so far (rollback target)
         self.switch_s = 0.0  # seconds the switch took (not part of the --minutes budget)
         self._untimed_s = 0.0  # seconds of the current step not counted in the budget (the switch)
+        self.exposure = None  # per-photo colour corrections (trisplat.train.exposure), when cfg.exposure is on
+        if cfg.exposure == "on" or (cfg.exposure == "auto" and len(data.train_indices)
+                                    and data.load_alpha(int(data.train_indices[0])) is None):
+            from trisplat.train.exposure import Exposure
+
+            self.exposure = Exposure(len(data.cameras), cfg.lr_exposure, train_indices=data.train_indices)
         self.far_faces = 0  # after the switch of a capture without a content box: the far-field soup faces, kept as
         # the last rows of the face table (their vertices the last vertex rows) behind the connected surface
         self._last_prune = self._last_densify = self._last_refine = -(10**9)
@@ -131,7 +137,9 @@ class Trainer:
                 "last_prune": self._last_prune, "last_densify": self._last_densify, "last_refine": self._last_refine,
                 "lr_scale": self.lr_scale, "rollbacks": self.rollbacks, "failed_step": self._failed_step,
                 "connected": self.connected, "switch_failed": self.switch_failed, "far_faces": self.far_faces,
-                "health": self.health.to_dict(), "prune_off": self.prune_off, "switch_s": self.switch_s,
+                "health": self.health.to_dict(),
+                "exposure": None if self.exposure is None else self.exposure.state(),
+                "prune_off": self.prune_off, "switch_s": self.switch_s,
                 "normalization": np.asarray(self.data.normalization).tolist()}
 
     def _restore(self, ckpt: dict) -> None:
@@ -148,6 +156,11 @@ class Trainer:
         self.switch_failed = bool(ckpt["extra"].get("switch_failed", False))
         self.far_faces = int(ckpt["extra"].get("far_faces", 0))
         self.health = RunHealth.from_dict(ckpt["extra"].get("health"))
+        if self.exposure is not None and ckpt["extra"].get("exposure") is not None:
+            from trisplat.train.exposure import Exposure
+
+            self.exposure = Exposure(len(self.data.cameras), self.cfg.lr_exposure, ckpt["extra"]["exposure"],
+                                     self.data.train_indices)
         self.prune_off = bool(ckpt["extra"].get("prune_off", False))
         self.switch_s = float(ckpt["extra"].get("switch_s", 0.0))
         self._last_prune = int(ckpt["extra"].get("last_prune", -(10**9)))
@@ -232,7 +245,8 @@ class Trainer:
         cam = self.data.cameras[idx]
         out = self.render(idx, p, supersample=schedules.supersample(p, cfg))
         gt = self.gt(idx)
-        loss = losses.photometric(out.rgb, gt, cfg.lambda_dssim, backend=cfg.backend)
+        rgb = out.rgb if self.exposure is None else self.exposure.apply(out.rgb, idx)
+        loss = losses.photometric(rgb, gt, cfg.lambda_dssim, backend=cfg.backend)
         if p < cfg.opacity_penalty_until and cfg.lambda_opacity > 0:
             loss = loss + cfg.lambda_opacity * self.ts.opacities().mean()
         K = torch.as_tensor(cam.K, dtype=torch.float32)
@@ -249,11 +263,15 @@ class Trainer:
         finite = _all_finite(loss) and all(_all_finite(v.grad) for v in self.ts.params.values() if v.grad is not None)
         if not finite:
             self.ts.optimizer.zero_grad(set_to_none=True)
+            if self.exposure is not None:
+                self.exposure.zero_grad()
             return {"ok": False}
         if self._refining(p):
             accumulate_colour_gradient(self.ts)
         self.ts.optimizer.step()
         self.ts.optimizer.zero_grad(set_to_none=True)
+        if self.exposure is not None:
+            self.exposure.step(self.lr_scale)
         if not self._params_finite():
             return {"ok": False}
         with torch.no_grad():
@@ -263,7 +281,7 @@ class Trainer:
                                           torch.as_tensor(cam.world_to_camera, dtype=torch.float32), K, cfg.near,
                                           cam.width, cam.height)
             st["max_screen_px"] = torch.maximum(st["max_screen_px"], px)
-        return {"ok": True, "loss": float(loss.detach()), "psnr": psnr_value(out.rgb.detach().clamp(0, 1), gt)}
+        return {"ok": True, "loss": float(loss.detach()), "psnr": psnr_value(rgb.detach().clamp(0, 1), gt)}
 
     def _strategy(self, p_prev: float, p: float) -> None:
         """Periodic events: epoch roll of statistics, pruning, densification, switch to a connected mesh."""
@@ -298,14 +316,17 @@ class Trainer:
             res = prune(ts, schedules.prune_threshold(p, cfg), cfg.prune_max_screen_frac * max(cam.width, cam.height),
                         cfg.prune_max_fraction)
             self._last_prune = self.step
-            self._log({"step": self.step, "prune": {**res.to_dict(), "threshold": schedules.prune_threshold(p, cfg)}})
+            if res is not None:
+                self._log({"step": self.step, "prune": {**res.to_dict(),
+                                                        "threshold": schedules.prune_threshold(p, cfg)}})
         if seen_all_views and not self.connected and self.step - self._last_densify >= n_train and schedules.crossed(
                 p_prev, p, cfg.densify_from, cfg.densify_until, cfg.densify_interval):
             res = densify(ts, cfg.densify_growth, cfg.max_vertices, cfg.densify_largest, cfg.min_face_px,
                           self.generator)
             self._last_densify = self.step
-            self._log({"step": self.step, "densify": {"faces_selected": res.faces_selected,
-                                                      "vertices_added": res.vertices_added, "faces": ts.num_faces}})
+            if res is not None:
+                self._log({"step": self.step, "densify": {"faces_selected": res.faces_selected,
+                                                          "vertices_added": res.vertices_added, "faces": ts.num_faces}})
 
     def _refining(self, p: float) -> bool:
         """Whether the connected surface is being refined at progress p (trisplat.strategy.refine)."""
@@ -651,10 +672,11 @@ class Trainer:
     def _run_verdict(self, metrics: dict) -> dict:
         """What the run says about itself (trisplat.train.health.verdict): coverage of the test views, collapses,
         the final PSNR against the best seen; with a far field, the connected surface's own statistics."""
-        from trisplat.train.health import verdict
+        from trisplat.train.health import add_to_report, verdict
 
         coverage = self.test_coverage()
         extra = {"coverage": coverage, "switch_s": self.switch_s, "far_field_faces": self.far_faces,
+                 "exposure": None if self.exposure is None else self.exposure.summary(),
                  "history_faces_peak": self.health.peak_faces}
         if self.far_faces:
             from trisplat.mesh.stats import mesh_statistics
@@ -667,6 +689,8 @@ class Trainer:
                              "of": "the connected surface (without the far-field soup)"}
             extra["surface_faces"] = surface.num_faces
         extra["health"] = verdict(self.health, metrics.get("psnr"), coverage)
+        if metrics.get("report"):
+            add_to_report(self.run_dir / metrics["report"], extra["health"])
         return extra
 
 

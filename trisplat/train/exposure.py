@@ -1,0 +1,57 @@
+"""Per-image exposure and white balance: a small affine colour transform per training photo, learned with the scene.
+
+Real photos differ in exposure and white balance (auto exposure, a cloud, a phone's tone mapping); one scene
+cannot match all of them, and without a per-photo correction the triangles absorb the differences (floaters, wrong
+colours). Each photo i gets rgb' = (I + A_i) rgb + b_i (A_i [3,3], b_i [3], both starting at zero) applied to the
+render before the loss. The scene itself stays in the common colour of the photos: evaluation, test renders and
+exported files use the uncorrected render (a held-out photo has no learned correction), as NeRF-W and the 3DGS
+appearance variants report.
+"""
+from __future__ import annotations
+
+import torch
+
+PARAMS_PER_IMAGE = 12  # A (3x3, row-major) then b (3)
+
+
+class Exposure:
+    """Affine colour corrections for `n_images` photos (indexed like SceneData.cameras), with their own Adam."""
+
+    def __init__(self, n_images: int, lr: float, values: torch.Tensor | None = None, train_indices=None):
+        init = torch.zeros(n_images, PARAMS_PER_IMAGE) if values is None else values.detach().clone().float()
+        if init.shape != (n_images, PARAMS_PER_IMAGE):
+            raise ValueError(f"exposure parameters must be [{n_images},{PARAMS_PER_IMAGE}], got {tuple(init.shape)}")
+        self.params = torch.nn.Parameter(init)
+        self.lr = float(lr)
+        self.optimizer = torch.optim.Adam([self.params], lr=self.lr, eps=1e-15)
+        self.train = torch.arange(n_images) if train_indices is None else torch.as_tensor(train_indices).long()
+
+    def apply(self, rgb: torch.Tensor, index: int) -> torch.Tensor:
+        """rgb [H,W,3] as photo `index` would show it."""
+        p = self.params[index]
+        A = torch.eye(3, dtype=rgb.dtype) + p[:9].reshape(3, 3).to(rgb.dtype)
+        return rgb @ A.T + p[9:].to(rgb.dtype)
+
+    def step(self, scale: float = 1.0) -> None:
+        for group in self.optimizer.param_groups:
+            group["lr"] = self.lr * scale
+        self.optimizer.step()
+        self.optimizer.zero_grad(set_to_none=True)
+        # the gauge: a colour change common to every photo belongs to the scene, not to the corrections (else the
+        # scene drifts while the corrections make up for it, and the uncorrected test renders pay for it)
+        with torch.no_grad():
+            self.params[self.train] -= self.params[self.train].mean(0)
+
+    def zero_grad(self) -> None:
+        self.optimizer.zero_grad(set_to_none=True)
+
+    def state(self) -> torch.Tensor:
+        return self.params.detach().clone()
+
+    def summary(self) -> dict:
+        """The largest correction learned: gain (diagonal of I + A) farthest from 1, largest |offset|."""
+        p = self.params.detach()
+        if not len(p):
+            return {"max_gain_change": 0.0, "max_offset": 0.0}
+        diag = p[:, [0, 4, 8]]
+        return {"max_gain_change": float(diag.abs().max()), "max_offset": float(p[:, 9:].abs().max())}
