@@ -14,8 +14,10 @@ from trisplat.io.mesh_files import FORMATS
 @dataclass
 class ViewConfig:
     """Show a trained run (its mesh in the capture frame, the training cameras as frusta, the photos) or a mesh
-    file (.ply/.obj/.glb) in the browser. Orbit or walk (WASD) around; N jumps to the nearest training camera and G
-    toggles between the mesh and that camera's ground-truth photo. Ctrl-C stops the server."""
+    file (.ply/.obj/.glb) in the browser. A run shows its mesh.glb (else mesh.ply) loaded by three.js's glTF loader,
+    as an engine shows it; `?testcam=K` in the address puts the view at test camera K exactly. Orbit or walk (WASD)
+    around; N jumps to the nearest training camera and G toggles between the mesh and that camera's ground-truth
+    photo. Ctrl-C stops the server."""
 
     target: tyro.conf.Positional[Path]
     """run folder written by `trisplat train`, or a mesh file"""
@@ -25,6 +27,8 @@ class ViewConfig:
     """only print the address; do not open a browser"""
     verbose: bool = False
     """log every HTTP request"""
+    file: Path | None = None
+    """the run's mesh to show (.glb/.ply/.obj, relative to the run folder; default mesh.glb, else mesh.ply)"""
 
 
 def main(argv: list[str]) -> int:
@@ -33,7 +37,7 @@ def main(argv: list[str]) -> int:
 
     cfg = tyro.cli(ViewConfig, args=argv, prog="trisplat view", description=__doc__, config=CLI_STYLE)
     if cfg.target.is_dir():
-        data = viewer_data_from_run(cfg.target)
+        data = viewer_data_from_run(cfg.target, cfg.file)
     elif cfg.target.suffix.lower() in FORMATS:
         data = viewer_data_from_mesh(cfg.target)
     else:
@@ -44,7 +48,8 @@ def main(argv: list[str]) -> int:
         server = ViewerServer(data, port=cfg.port, quiet=not cfg.verbose)
     except OSError as exc:
         raise ValueError(f"cannot listen on 127.0.0.1:{cfg.port} ({exc.strerror}); pick another --port") from exc
-    print(f"trisplat view: {len(data.faces):,} faces, {len(data.cameras)} cameras at {server.url}  (Ctrl-C stops)")
+    shown = "the GLB as a glTF viewer loads it, " if data.glb is not None else ""
+    print(f"trisplat view: {shown}{len(data.faces):,} faces, {len(data.cameras)} cameras at {server.url}  (Ctrl-C stops)")
     if not cfg.no_browser:
         webbrowser.open(server.url)
     try:

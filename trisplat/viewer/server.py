@@ -1,4 +1,5 @@
-"""The viewer's local web server (stdlib http.server): the static page, the mesh, cameras, photos, page reports."""
+"""The viewer's local web server (stdlib http.server): the static page, the mesh (packed arrays or the GLB file
+itself), cameras, photos, page reports."""
 from __future__ import annotations
 
 import json
@@ -83,6 +84,10 @@ class _Handler(BaseHTTPRequestHandler):
             return self._send(self.server._scene, "application/json")
         if path == "/api/mesh.bin":
             return self._send(self.server._mesh, "application/octet-stream")
+        if path == "/api/mesh.glb":
+            if self.server.data.glb is None:
+                return self._send(b"this view has no GLB", "text/plain", HTTPStatus.NOT_FOUND)
+            return self._send(self.server.data.glb, "model/gltf-binary")
         if path.startswith("/api/image/") and path.endswith(".png"):
             try:
                 body = self.server.image(int(path[len("/api/image/"):-4]))

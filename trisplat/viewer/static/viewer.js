@@ -1,10 +1,12 @@
-// trisplat viewer: the mesh with its vertex colours, orbit and walk controls, training cameras as frusta, and a
-// toggle between the mesh and the ground-truth photo seen from the nearest camera. Data comes from the local server:
-// /api/scene.json (counts, bounds, up, cameras) and /api/mesh.bin (float32 positions | uint8 colours | uint32 faces).
+// trisplat viewer: the mesh, orbit and walk controls, training cameras as frusta, and a toggle between the mesh and
+// the ground-truth photo seen from the nearest camera. Data comes from the local server: /api/scene.json (counts,
+// bounds, up, cameras) and either /api/mesh.glb (a glTF file, loaded by three.js's GLTFLoader with the materials,
+// textures and colour spaces it defines: what an engine shows) or /api/mesh.bin (float32 positions | uint8 sRGB
+// colours | uint32 faces). Colour: three.js's linear working space, sRGB output, no tone mapping.
 import {
-  BufferAttribute, BufferGeometry, Color, ColorManagement, AmbientLight, DirectionalLight, DoubleSide,
-  Float32BufferAttribute, LineBasicMaterial, LineSegments, LinearSRGBColorSpace, Matrix4, Mesh, MeshBasicMaterial,
-  MeshLambertMaterial, OrbitControls, PerspectiveCamera, Quaternion, Scene, Vector3, WebGLRenderer,
+  AmbientLight, BufferAttribute, BufferGeometry, Color, DirectionalLight, DoubleSide, Float32BufferAttribute,
+  GLTFLoader, Group, LineBasicMaterial, LineSegments, Matrix4, Mesh, MeshBasicMaterial, MeshLambertMaterial,
+  NoToneMapping, OrbitControls, PerspectiveCamera, Quaternion, SRGBColorSpace, Scene, Vector3, WebGLRenderer,
 } from './three.bundle.min.js';
 
 const BACKGROUND = 0x202428;
@@ -22,9 +24,11 @@ const stage = document.getElementById('stage');
 const photo = document.getElementById('photo');
 const statusEl = document.getElementById('status');
 
-ColorManagement.enabled = false; // colours are the photos' sRGB values: shown as stored, no conversion
+// glTF: base colour textures are sRGB, COLOR_0 linear; three.js works in linear light and encodes to sRGB on output
+// (hex colours below are sRGB display values, converted by ColorManagement on the way in).
 const renderer = new WebGLRenderer({ antialias: true });
-renderer.outputColorSpace = LinearSRGBColorSpace;
+renderer.outputColorSpace = SRGBColorSpace;
+renderer.toneMapping = NoToneMapping;
 renderer.setPixelRatio(window.devicePixelRatio || 1);
 stage.appendChild(renderer.domElement);
 const scene = new Scene();
@@ -33,18 +37,18 @@ const camera = new PerspectiveCamera(50, 1, 0.01, 100);
 let controls = null; // made once the scene's up direction is known (OrbitControls fixes it at construction)
 
 const state = {
-  info: null, radius: 1, extent: 1, frustumDepth: 0.1, up: new Vector3(0, 1, 0), mesh: null, frusta: null, selected: null,
+  info: null, cams: [], radius: 1, extent: 1, frustumDepth: 0.1, up: new Vector3(0, 1, 0), mesh: null, frusta: null, selected: null,
   snapped: null, showPhoto: false, walk: false, shaded: false, keys: new Set(), dirty: true, lastTime: 0,
 };
-let basicMaterial = null;
-let shadedMaterial = null;
+let lights = null;
 
 function setStatus() {
   const i = state.info;
   if (!i) return;
   let s = `${i.num_faces.toLocaleString()} faces, ${i.num_vertices.toLocaleString()} vertices, ${i.cameras.length} cameras`;
   if (state.snapped !== null) {
-    s += `\nat ${i.cameras[state.snapped].name}: showing ${state.showPhoto ? 'ground-truth photo' : 'mesh'}`;
+    const cam = state.cams[state.snapped];
+    s += `\nat ${cam.split === 'test' ? 'test camera ' : ''}${cam.name}: showing ${state.showPhoto ? 'ground-truth photo' : 'mesh'}`;
   }
   s += `\nmode: ${state.walk ? 'walk' : 'orbit'}`;
   statusEl.textContent = s;
@@ -98,7 +102,7 @@ function buildFrusta() {
 
 function highlight(index) {
   if (!state.selected) return;
-  state.selected.geometry.setAttribute('position', frustumSegments([state.info.cameras[index]], state.frustumDepth * 1.02));
+  state.selected.geometry.setAttribute('position', frustumSegments([state.cams[index]], state.frustumDepth * 1.02));
   state.selected.visible = state.frusta.visible;
 }
 
@@ -127,11 +131,16 @@ function projectionFromK(cam, near, far) {
   );
 }
 
+function trainIndex(index) { // wraps around the training cameras
+  const n = state.info.cameras.length;
+  return ((index % n) + n) % n;
+}
+
 function snapTo(index, showPhoto) {
-  const cams = state.info.cameras;
-  if (!cams.length) return;
-  index = ((index % cams.length) + cams.length) % cams.length;
-  const cam = cams[index];
+  // index into state.cams: the training cameras, then the test cameras. The view becomes that camera exactly:
+  // its pose, and a projection made from its intrinsics (principal point included) on a canvas of its aspect.
+  const cam = state.cams[index];
+  if (!cam) return;
   state.snapped = index;
   const m = c2wMatrix(cam);
   m.decompose(camera.position, camera.quaternion, new Vector3());
@@ -146,7 +155,7 @@ function snapTo(index, showPhoto) {
 
 function unsnap() {
   if (state.snapped === null) return;
-  const cam = state.info.cameras[state.snapped];
+  const cam = state.cams[state.snapped];
   state.snapped = null;
   camera.fov = (2 * Math.atan(cam.height / (2 * cam.K[4])) * 180) / Math.PI;
   setPhoto(false);
@@ -154,7 +163,7 @@ function unsnap() {
 }
 
 function setPhoto(show) {
-  state.showPhoto = !!show && state.snapped !== null && state.info.cameras[state.snapped].has_image;
+  state.showPhoto = !!show && state.snapped !== null && state.cams[state.snapped].has_image;
   if (state.showPhoto) {
     const src = `/api/image/${state.snapped}.png`;
     if (!photo.src.endsWith(src)) { photo.dataset.loaded = ''; photo.src = src; }
@@ -171,7 +180,7 @@ function layout() {
   const W = window.innerWidth, H = window.innerHeight;
   let w = W, h = H, left = 0, top = 0;
   if (state.snapped !== null) { // letterbox to the photo's aspect so mesh and photo line up pixel for pixel
-    const cam = state.info.cameras[state.snapped];
+    const cam = state.cams[state.snapped];
     const s = Math.min(W / cam.width, H / cam.height);
     w = Math.round(cam.width * s); h = Math.round(cam.height * s);
     left = Math.floor((W - w) / 2); top = Math.floor((H - h) / 2);
@@ -182,26 +191,38 @@ function layout() {
   }
   const near = 0.002 * state.radius, far = 20 * state.extent;
   if (state.snapped !== null) {
-    camera.projectionMatrix.copy(projectionFromK(state.info.cameras[state.snapped], near, far));
+    camera.projectionMatrix.copy(projectionFromK(state.cams[state.snapped], near, far));
     camera.projectionMatrixInverse.copy(camera.projectionMatrix).invert();
   } else {
     camera.aspect = w / h; camera.near = near; camera.far = far;
     camera.updateProjectionMatrix();
   }
   state.dirty = true;
+  if (document.body.dataset.ready === '1') window.trisplatReport({ kind: 'layout', canvas: [w, h] }); // resized later
 }
 
 function setShaded(on) {
+  // shaded: each mesh's own colours (texture, vertex colours, factor) under a Lambert material with two lights;
+  // off: the material the mesh came with (the GLB's unlit material, or unlit vertex colours)
   state.shaded = on;
-  if (on && !shadedMaterial) {
-    state.mesh.geometry.computeVertexNormals();
-    shadedMaterial = new MeshLambertMaterial({ vertexColors: true, side: DoubleSide, flatShading: true });
-    scene.add(new AmbientLight(0xffffff, 0.55));
-    const sun = new DirectionalLight(0xffffff, 0.9);
-    sun.position.copy(state.up).multiplyScalar(3 * state.radius).add(new Vector3(state.radius, 0, state.radius));
-    scene.add(sun);
+  if (on && !lights) {
+    lights = [new AmbientLight(0xffffff, 0.55), new DirectionalLight(0xffffff, 0.9)];
+    lights[1].position.copy(state.up).multiplyScalar(3 * state.radius).add(new Vector3(state.radius, 0, state.radius));
+    scene.add(...lights);
   }
-  state.mesh.material = on ? shadedMaterial : basicMaterial;
+  state.mesh.traverse((o) => {
+    if (!o.isMesh) return;
+    const d = o.userData;
+    if (!d.basic) d.basic = o.material;
+    if (on && !d.shaded) {
+      if (!o.geometry.getAttribute('normal')) o.geometry.computeVertexNormals();
+      const b = d.basic;
+      d.shaded = new MeshLambertMaterial({
+        color: b.color, map: b.map, vertexColors: b.vertexColors, side: DoubleSide, flatShading: true,
+      });
+    }
+    o.material = on ? d.shaded : d.basic;
+  });
   state.dirty = true;
   setStatus();
 }
@@ -291,8 +312,8 @@ function togglePhoto() {
 const actions = {
   o: () => setWalk(false), f: () => setWalk(!state.walk), c: toggleFrusta, l: () => setShaded(!state.shaded),
   n: () => state.info.cameras.length && snapTo(nearestCamera(), state.showPhoto), g: togglePhoto,
-  '[': () => state.info.cameras.length && snapTo((state.snapped ?? 0) - 1, state.showPhoto),
-  ']': () => state.info.cameras.length && snapTo((state.snapped ?? -1) + 1, state.showPhoto),
+  '[': () => state.info.cameras.length && snapTo(trainIndex((state.snapped ?? 0) - 1), state.showPhoto),
+  ']': () => state.info.cameras.length && snapTo(trainIndex((state.snapped ?? -1) + 1), state.showPhoto),
   escape: () => unsnap(), h: () => document.body.classList.toggle('clean'),
 };
 window.addEventListener('keydown', (e) => {
@@ -329,11 +350,28 @@ function buildMesh(info, buf) {
   if (buf.byteLength !== posBytes + colBytes + F * 12) throw new Error(`mesh.bin has ${buf.byteLength} bytes, expected ${posBytes + colBytes + F * 12}`);
   const g = new BufferGeometry();
   g.setAttribute('position', new BufferAttribute(new Float32Array(buf, 0, V * 3), 3));
-  g.setAttribute('color', new BufferAttribute(new Uint8Array(buf, posBytes, V * 3), 3, true));
+  const lut = new Float32Array(256).map((_, k) => { // sRGB bytes -> linear light (vertex colours are linear)
+    const c = k / 255;
+    return c <= 0.04045 ? c / 12.92 : ((c + 0.055) / 1.055) ** 2.4;
+  });
+  const srgb = new Uint8Array(buf, posBytes, V * 3);
+  g.setAttribute('color', new BufferAttribute(Float32Array.from(srgb, (c) => lut[c]), 3));
   g.setIndex(new BufferAttribute(new Uint32Array(buf, posBytes + colBytes, F * 3), 1));
   g.computeBoundingSphere();
-  basicMaterial = new MeshBasicMaterial({ vertexColors: true, side: DoubleSide });
-  return new Mesh(g, basicMaterial);
+  return new Mesh(g, new MeshBasicMaterial({ vertexColors: true, side: DoubleSide }));
+}
+
+async function loadGlb(info) {
+  // the file as it is (GLTFLoader: KHR_materials_unlit -> MeshBasicMaterial, baseColorTexture sRGB, COLOR_0
+  // linear, the sampler's filters and wraps), placed in the page's frame by glb_matrix (row-major)
+  const buf = await fetchOk('/api/mesh.glb', 'bin');
+  const gltf = await new GLTFLoader().parseAsync(buf, '');
+  const group = new Group();
+  group.matrixAutoUpdate = false;
+  group.matrix.set(...info.glb_matrix);
+  group.add(gltf.scene);
+  group.updateMatrixWorld(true);
+  return group;
 }
 
 function initialView() {
@@ -367,8 +405,9 @@ function photoReady() {
 }
 
 async function main() {
-  const [info, buf] = await Promise.all([fetchOk('/api/scene.json', 'json'), fetchOk('/api/mesh.bin', 'bin')]);
+  const info = await fetchOk('/api/scene.json', 'json');
   state.info = info;
+  state.cams = [...info.cameras, ...(info.test_cameras || [])];
   document.getElementById('title').textContent = info.title;
   document.title = `${info.title} - trisplat viewer`;
   state.up.set(...info.up).normalize();
@@ -378,7 +417,7 @@ async function main() {
   const camDist = info.cameras.map((c) => new Vector3().setFromMatrixPosition(c2wMatrix(c)).distanceTo(centre)).sort((a, b) => a - b);
   state.extent = Math.max(state.radius, ...camDist);
   state.frustumDepth = FRUSTUM_SIZE * (camDist.length ? camDist[camDist.length >> 1] : state.radius);
-  state.mesh = buildMesh(info, buf);
+  state.mesh = info.glb ? await loadGlb(info) : buildMesh(info, await fetchOk('/api/mesh.bin', 'bin'));
   scene.add(state.mesh);
   buildFrusta();
   initialView();
@@ -386,7 +425,12 @@ async function main() {
   if (params.get('frusta') === '0') toggleFrusta();
   if (params.get('mode') === 'walk') setWalk(true);
   if (params.get('shaded') === '1') setShaded(true);
-  if (params.has('cam') && info.cameras.length) snapTo(parseInt(params.get('cam'), 10) || 0, params.get('photo') === '1');
+  if (params.has('cam') && info.cameras.length) snapTo(trainIndex(parseInt(params.get('cam'), 10) || 0), params.get('photo') === '1');
+  if (params.has('testcam')) { // a held-out camera: ?testcam=K (0-based, in the capture's test split order)
+    const k = parseInt(params.get('testcam'), 10);
+    if (!(k >= 0 && k < (info.test_cameras || []).length)) throw new Error(`no test camera ${params.get('testcam')}`);
+    snapTo(info.cameras.length + k, params.get('photo') === '1');
+  }
   for (const key of (params.get('do') || '').split(',').filter(Boolean)) { // scripted key presses (tests, links)
     if (!actions[key]) throw new Error(`unknown action key in ?do=: ${key}`);
     actions[key]();
@@ -397,7 +441,9 @@ async function main() {
   requestAnimationFrame(() => requestAnimationFrame(() => {
     const gl = renderer.getContext();
     window.trisplatReport({
-      kind: 'ready', faces: info.num_faces, cameras: info.cameras.length, snapped: state.snapped,
+      kind: 'ready', faces: info.num_faces, cameras: info.cameras.length, snapped: state.snapped, glb: info.glb,
+      snapped_split: state.snapped === null ? null : state.cams[state.snapped].split,
+      canvas: [renderer.domElement.width, renderer.domElement.height],
       photo: state.showPhoto && photoOk, webgl: gl.getParameter(gl.VERSION), drawn_triangles: renderer.info.render.triangles,
     });
     document.body.dataset.ready = '1';
