@@ -1,4 +1,4 @@
-"""`trisplat bench render|train|mesh|losses|all [options]`: one entry for the benchmarks (JSON + markdown in --out)."""
+"""`trisplat bench SUITE|all [options]`: one entry for the benchmarks (JSON + markdown in --out); SUITES lists them."""
 from __future__ import annotations
 
 import importlib
@@ -14,8 +14,12 @@ SUITES: dict[str, tuple[str, str]] = {
     "losses": ("trisplat.bench.losses", "training step kernels (losses, SH colour): fused Numba vs their torch twins"),
     "poses": ("trisplat.bench.poses", "structure from motion on a capture's photos vs its own model (fox)"),
 }
-# run by name only, not by `all`: tens of minutes on the full sequence
+# run by name only, not by `all`: tens of minutes on the full sequence (slam), or tools outside the Python install
+# (consumers: headless Chromium, Blender's bpy in its own environment)
 LONG_SUITES: dict[str, tuple[str, str]] = {
+    "consumers": ("trisplat.bench.consumers", "mesh.glb in real consumers (browser viewer: three.js GLTFLoader; "
+                  "Blender: bpy + Cycles) vs the glTF spec render: PSNR (needs chromium; Blender: "
+                  "scripts/ci_extras.sh --blender)"),
     "slam": ("trisplat.bench.slam", "trisplat slam vs Open3D odometry + TSDF on an RGB-D capture: ATE, time, mesh "
              "Chamfer (needs open3d-cpu; long: not part of 'all')"),
 }
@@ -24,12 +28,12 @@ INDEX_MD = "index.md"
 
 
 def _usage() -> str:
-    lines = ["usage: trisplat bench {render,train,mesh,losses,poses,slam,all} [options]   "
+    lines = ["usage: trisplat bench {render,train,mesh,losses,poses,consumers,slam,all} [options]   "
              "(trisplat bench SUITE --help for its options)",
              "", "Each suite writes <name>.json (with machine, versions, commit) and <name>.md into --out "
              f"(default {DEFAULT_OUT}/).", "", "suites:"]  # fmt: skip
-    lines += [f"  {name:<8} {desc}" for name, (_, desc) in {**SUITES, **LONG_SUITES}.items()]
-    lines.append(f"  {'all':<8} every suite in turn with the same options, except {', '.join(LONG_SUITES)} (long: run "
+    lines += [f"  {name:<9} {desc}" for name, (_, desc) in {**SUITES, **LONG_SUITES}.items()]
+    lines.append(f"  {'all':<9} every suite in turn with the same options, except {', '.join(LONG_SUITES)} (long: run "
                  f"it by name); also writes --out/{INDEX_MD}")
     return "\n".join(lines)
 
