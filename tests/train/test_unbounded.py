@@ -122,3 +122,25 @@ def test_oversized_rule_ignores_faces_off_screen():
     px = projected_edge_px(pos, faces, torch.eye(4), K, 0.01, 100, 100)
     assert px[0] == 0.0 and px[1] > 80.0
     assert projected_edge_px(pos, faces, torch.eye(4), K, 0.01)[0] > 400.0  # without the image size: the old rule
+
+
+def test_photos_without_alpha_get_their_mean_colour_behind_the_triangles(room, tmp_path):
+    """White is not the background of a real photo: a capture without alpha trains over its photos' mean colour
+    (unless --background is given); a capture with alpha keeps the configured background."""
+    from trisplat.commands.train import make_train_args, photo_background, run_training
+    from trisplat.data import load_dataset
+    from trisplat.synth import demo_mesh, write_blender_scene
+
+    data = load_dataset(room)
+    bg = np.array(photo_background(data))
+    photos = np.stack([np.asarray(data.load_image(int(i))) for i in data.train_indices])
+    assert np.allclose(bg, photos.reshape(-1, 3).mean(0), atol=0.03) and not np.allclose(bg, 1.0, atol=0.2)
+    blender = write_blender_scene(tmp_path / "object", demo_mesh(), n_train=3, n_test=1, width=24, height=24,
+                                  samples_per_pixel=1, n_points=0)
+    assert photo_background(load_dataset(blender)) is None
+    # the run records the colour it trained over (config.json), so eval and renders use the same
+    args = make_train_args(room, tmp_path / "run", "fast", steps=3, texture_size=0, quiet=True, output="soup",
+                           eval_every=1.0)
+    run_training(args)
+    saved = json.loads((tmp_path / "run" / layout.CONFIG).read_text())
+    assert np.allclose(saved["background"], bg, atol=1e-3)

@@ -157,6 +157,14 @@ def run_training(args: TrainArgs, explicit: set[str] | None = None):
                         "format": cfg.data_format}
         data_path = str(args.data.resolve())
     data = load_dataset(data_path, **data_options)  # inputs checked before anything in `out` changes
+    if not resume and "background" not in (explicit or set()) and cfg.background == make_config(args.preset).background:
+        bg = photo_background(data)
+        if bg is not None:
+            cfg = dataclasses.replace(cfg, background=bg)
+            data_options["background"] = list(bg)
+            if not args.quiet:
+                print(f"background: the mean colour of the photos, ({', '.join(f'{c:.3f}' for c in bg)}): they have "
+                      "no alpha (--background R G B to choose)", file=sys.stderr)
     if not args.quiet:
         for w in data.warnings:  # what the loader fixed, skipped or could not use, said before the long work
             print(f"warning: {w}", file=sys.stderr)
@@ -204,6 +212,24 @@ def budget_downscale(width: int, height: int, minutes: float) -> int:
         if (width / factor) * (height / factor) <= PIXELS_PER_BUDGET_MINUTE * minutes:
             return factor
     return 8
+
+
+BACKGROUND_SAMPLE_PHOTOS = 16  # training photos averaged for the background colour of a capture without alpha
+
+
+def photo_background(data) -> tuple[float, float, float] | None:
+    """For a capture whose photos have no alpha (real photos of a scene): the mean colour of (up to
+    BACKGROUND_SAMPLE_PHOTOS of) its training photos, as the colour behind the triangles. White is not the background
+    of a real photo: through a soft, half-transparent soup it showed as a bright haze the triangles had to hide.
+    None for captures with alpha (their ground truth is composited over the configured background)."""
+    train = [int(i) for i in data.train_indices]
+    if not train or data.load_alpha(train[0]) is not None:
+        return None
+    import numpy as np
+
+    pick = train[:: max(1, len(train) // BACKGROUND_SAMPLE_PHOTOS)][:BACKGROUND_SAMPLE_PHOTOS]
+    mean = np.mean([np.asarray(data.load_image(i), dtype=np.float64).reshape(-1, 3).mean(0) for i in pick], axis=0)
+    return tuple(round(float(c), 4) for c in mean)
 
 
 def choose_downscale(args: TrainArgs, explicit: set[str]) -> TrainArgs:
