@@ -283,5 +283,4 @@ def main(argv: list[str]) -> int:
             print(f"  problem: {problem}")
         for note in health.get("recoveries", []):
             print(f"  recovered: {note}")
-        return 0 if health["ok"] else 3
-    return 0
+    return 0  # the run finished and wrote its files; whether to trust them is metrics.json's `health`

@@ -37,6 +37,20 @@ def decimate(positions: np.ndarray, faces: np.ndarray, colors: np.ndarray, targe
     return np.asarray(p, np.float32), np.asarray(f, np.int64), np.asarray(colors)[nearest]
 
 
+MIN_TEXTURE_SIZE = 64
+
+
+def photo_texture_cap(data) -> int:
+    """The largest useful texture side for a capture: the power of two at or above sqrt(pixels of all training
+    photos), at least MIN_TEXTURE_SIZE. A texture with more texels than the photos have pixels holds nothing they
+    say, and fitting it costs time (a 2048 texture for six 40x40 views took most of a test's minutes)."""
+    pixels = sum(int(data.cameras[int(i)].width) * int(data.cameras[int(i)].height) for i in data.train_indices)
+    side = MIN_TEXTURE_SIZE
+    while side * side < pixels:
+        side *= 2
+    return side
+
+
 def build_asset(scene, data, texture_size: int = 2048, faces: int | None = None, supersample: int = 2,
                 near: float = 0.01) -> MeshAsset:
     """The mesh files' content for a TriangleScene trained on `data` (SceneData): SH band 0 as vertex colours,
@@ -51,6 +65,7 @@ def build_asset(scene, data, texture_size: int = 2048, faces: int | None = None,
         positions, fc, colors = decimate(positions, fc, colors, int(faces))
     asset = MeshAsset(positions=positions, faces=fc, colors=colors)
     if texture_size and len(fc):
-        asset.texture, rep = texture_mesh(positions, fc, colors, data, int(texture_size), supersample, near)
+        size = min(int(texture_size), photo_texture_cap(data))
+        asset.texture, rep = texture_mesh(positions, fc, colors, data, size, supersample, near)
         asset.texture_report = rep.to_dict()
     return asset
