@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import sys
 
 import numpy as np
@@ -118,4 +119,4 @@ def test_bench_command_runs_slam_by_name_only(monkeypatch, capsys):
     assert bench.main(["slam", "--max-frames", "3"]) == 0 and calls == [["--max-frames", "3"]]
     assert bench.main([]) == 0
     usage = capsys.readouterr().out
-    assert "  slam " in usage and "except slam" in usage
+    assert "  slam " in usage and re.search(r"except [a-z, ]*slam", usage)

@@ -372,17 +372,20 @@ class Trainer:
         train = [int(i) for i in self.data.train_indices]
         # voxels finer than about half a pixel of the training images add nothing but time
         side = max(max(self.data.cameras[i].width, self.data.cameras[i].height) for i in train)
+        # a pixel the soup leaves empty is free space only where the photos have a background (alpha): in a real
+        # photo every pixel sees something, so an empty pixel is a hole in the soup and says nothing (carving along
+        # it could cut through what other views see; issue 26, item 5)
+        masked = self.data.load_alpha(train[0]) is not None
         scfg = SurfaceConfig(resolution=int(min(cfg.surface_resolution, max(2 * side, 32))),
                              face_ratio=cfg.surface_face_ratio, max_depth_fraction=cfg.surface_max_depth,
                              max_faces=cfg.surface_max_faces, opacity=cfg.surface_opacity,
-                             unseen_faces=cfg.surface_unseen_faces)
+                             unseen_faces=cfg.surface_unseen_faces, empty_is_free=masked)
         say = (lambda m: print(f"switch: {m}", file=sys.stderr, flush=True)) if self.show_progress else None
         if say:
             say(f"step {self.step}: fusing the soup's depth in {len(train)} training views into one surface")
         # an object capture (alpha masks) has its content box; a real capture has none: its walls, floor and
         # distant content reach far beyond the cameras. There the surface is fused in the inner box (the unit cube
         # of the normalised frame, where the cameras are) and the soup beyond it is kept as a far-field layer
-        masked = self.data.load_alpha(train[0]) is not None
         soup = self.ts.to_scene()
         box = self.data.bounds if masked else inner_box()
         try:
