@@ -92,9 +92,10 @@ class Trainer:
         self._best_state: dict | None = None  # in memory: the state at the best test PSNR so far (rollback target)
         self.switch_s = 0.0  # seconds the switch took (not part of the --minutes budget)
         self._untimed_s = 0.0  # seconds of the current step not counted in the budget (the switch)
+        # photos with alpha (an object capture) vs without (real photos of a scene: exposure, far field, free space)
+        self.has_alpha = len(data.train_indices) > 0 and data.load_alpha(int(data.train_indices[0])) is not None
         self.exposure = None  # per-photo colour corrections (trisplat.train.exposure), when cfg.exposure is on
-        if cfg.exposure == "on" or (cfg.exposure == "auto" and len(data.train_indices)
-                                    and data.load_alpha(int(data.train_indices[0])) is None):
+        if cfg.exposure == "on" or (cfg.exposure == "auto" and len(data.train_indices) and not self.has_alpha):
             from trisplat.train.exposure import Exposure
 
             self.exposure = Exposure(len(data.cameras), cfg.lr_exposure, train_indices=data.train_indices)
@@ -375,7 +376,7 @@ class Trainer:
         # a pixel the soup leaves empty is free space only where the photos have a background (alpha): in a real
         # photo every pixel sees something, so an empty pixel is a hole in the soup and says nothing (carving along
         # it could cut through what other views see; issue 26, item 5)
-        masked = self.data.load_alpha(train[0]) is not None
+        masked = self.has_alpha
         scfg = SurfaceConfig(resolution=int(min(cfg.surface_resolution, max(2 * side, 32))),
                              face_ratio=cfg.surface_face_ratio, max_depth_fraction=cfg.surface_max_depth,
                              max_faces=cfg.surface_max_faces, opacity=cfg.surface_opacity,
