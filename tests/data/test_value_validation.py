@@ -92,6 +92,62 @@ def test_a_truncated_jpeg_is_refused_at_load_time(tmp_path):
         load(root, tmp_path, prepare="lazy")  # no image is decoded before training, yet it is found now
 
 
+# what a Pixel "motion photo" appends after the JPEG's end marker: an MP4 (its ftyp box first); Samsung's trailer
+_MP4_TRAILER = (b"\x00\x00\x00\x18ftypmp42\x00\x00\x00\x00isommp42" + bytes(range(256)) * 40
+                + b"\xff\xd8\xff\xe0 not a jpeg \x00\x00")
+_SAMSUNG_TRAILER = b"\x00\x00\x00\x00SEFH" + bytes(300) + b"SEFT"
+
+
+@pytest.mark.parametrize("trailer", [_MP4_TRAILER, _SAMSUNG_TRAILER], ids=["motion-photo-mp4", "samsung-sefh"])
+def test_a_phone_jpeg_with_a_trailer_after_its_end_marker_loads(tmp_path, trailer):
+    from trisplat.data.images import check_image_file, read_image
+
+    root = _colmap(tmp_path / "c")
+    p = root / "images" / "v1.jpg"
+    clean = read_image(p)
+    p.write_bytes(p.read_bytes() + trailer)
+    assert check_image_file(p) == (W, H, None)
+    np.testing.assert_array_equal(read_image(p), clean)
+    data = load(root, tmp_path, prepare="eager")  # checked and decoded (the cache holds it)
+    assert len(data.cameras) == 3 and not data.warnings
+
+
+def test_a_jpeg_cut_in_half_is_refused_even_with_an_end_marker_in_its_metadata(tmp_path):
+    """An APP segment holding a whole small JPEG (as an EXIF thumbnail does) has its own end marker: a file cut
+    inside its scan data is refused all the same, and one cut in half of a 'motion photo' too."""
+    import io
+
+    root = _colmap(tmp_path / "c")
+    thumb = io.BytesIO()
+    Image.fromarray(np.full((8, 8, 3), 200, np.uint8)).save(thumb, format="JPEG")
+    app = b"\xff\xef" + (2 + len(thumb.getvalue())).to_bytes(2, "big") + thumb.getvalue()
+    p = root / "images" / "v0.jpg"
+    whole = p.read_bytes()
+    whole = whole[:2] + app + whole[2:]
+    p.write_bytes(whole)
+    assert load(root, tmp_path, prepare="lazy").cameras  # complete: loads
+    sos = whole.rindex(b"\xff\xda")
+    half = (sos + len(whole)) // 2  # half-way through the main image's scan data, after the thumbnail's end marker
+    for cut in (whole[:half], (whole + _MP4_TRAILER)[:half], whole[: len(whole) // 2]):
+        p.write_bytes(cut)
+        with pytest.raises(ValueError, match=r"v0\.jpg: (truncated or damaged JPEG file|unreadable image)"):
+            load(root, tmp_path, prepare="lazy")
+    p.write_bytes(whole[:half])
+    with pytest.raises(ValueError, match=r"v0\.jpg: truncated or damaged JPEG file \(the file ends before"):
+        load(root, tmp_path, prepare="lazy")
+
+
+def test_a_progressive_jpeg_loads_and_is_refused_when_cut(tmp_path):
+    root = _colmap(tmp_path / "c")
+    p = root / "images" / "v2.jpg"
+    Image.open(p).convert("RGB").save(p, format="JPEG", progressive=True, quality=90)  # several scans
+    whole = p.read_bytes()
+    assert load(root, tmp_path, prepare="lazy").cameras
+    p.write_bytes(whole[: int(len(whole) * 0.7)])
+    with pytest.raises(ValueError, match=r"v2\.jpg: truncated or damaged JPEG file"):
+        load(root, tmp_path, prepare="lazy")
+
+
 @pytest.fixture
 def blender(tmp_path):
     from trisplat.synth import demo_mesh, write_blender_scene
@@ -112,6 +168,16 @@ def test_blender_truncated_png_is_refused(blender, tmp_path):
     p.write_bytes(p.read_bytes()[:-30])
     with pytest.raises(ValueError, match=r"test/r_0\.png: truncated or damaged PNG file"):
         load(blender, tmp_path)
+
+
+def test_blender_png_with_bytes_after_iend_loads(blender, tmp_path):
+    from trisplat.data.images import read_image
+
+    p = blender / "train" / "r_1.png"
+    clean = read_image(p)
+    p.write_bytes(p.read_bytes() + b"trailing bytes some tool appended\x00\x01\x02")  # after IEND: PIL ignores them
+    np.testing.assert_array_equal(read_image(p), clean)
+    assert len(load(blender, tmp_path).cameras) == 4
 
 
 def test_a_jpeg_renamed_png_is_warned_about(blender, tmp_path):
