@@ -16,6 +16,9 @@ RUN/
 from __future__ import annotations
 
 import json
+import shutil
+import sys
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -75,3 +78,32 @@ def open_run(path: str | Path) -> Run:
     state_p = path / STATE
     state = json.loads(state_p.read_text()) if state_p.exists() else {"finished": False, "step": 0}
     return Run(path=path, config=config, state=state)
+
+
+def prepare_run_dir(out: Path, resume: bool, force: bool, checkpoint: str = CHECKPOINT) -> None:
+    """Refuse to clobber a run (checks only: nothing is moved; see `move_aside`). --resume needs a run: its
+    checkpoint, or at least its config.json (a run killed before its first checkpoint starts over). The rules of
+    every command that writes a run (`trisplat train`, `trisplat slam`); `checkpoint`: the command's checkpoint file
+    in the run."""
+    out = Path(out)
+    if resume:
+        if not (out / checkpoint).exists() and not (out / CONFIG).exists():
+            raise FileNotFoundError(f"{out}: nothing to resume (no {checkpoint} and no {CONFIG})")
+        return
+    if out.exists() and not out.is_dir():
+        raise FileExistsError(f"{out} is a file, not a run directory")
+    if out.exists() and any(out.iterdir()) and not force:
+        state = open_run(out).state if (out / CONFIG).exists() else {}
+        what = "a finished run" if state.get("finished") else "an unfinished run (use --resume)" if state \
+            else "files"
+        raise FileExistsError(f"{out} already holds {what}; pass --force to start over (it is moved aside)")
+
+
+def move_aside(out: Path) -> Path | None:
+    """With --force, after the inputs were checked: move a non-empty `out` to OUT.old-TIME (never deleted)."""
+    if not (out.exists() and any(out.iterdir())):
+        return None
+    backup = out.with_name(f"{out.name}.old-{time.strftime('%Y%m%d-%H%M%S')}")
+    shutil.move(str(out), str(backup))
+    print(f"moved the previous contents of {out} to {backup}", file=sys.stderr)
+    return backup

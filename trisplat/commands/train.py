@@ -3,9 +3,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import shutil
 import sys
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Literal
@@ -13,6 +11,7 @@ from typing import Annotated, Literal
 import tyro
 
 from trisplat import run as layout
+from trisplat.run import move_aside, prepare_run_dir  # noqa: F401  (the run rules of every command)
 from trisplat.commands.style import flowing_help, help_description
 from trisplat.train.config import PRESETS, TrainConfig, make_config
 
@@ -62,32 +61,6 @@ def _preset_in(argv: list[str]) -> str:
         if a.startswith("--preset="):
             return a.split("=", 1)[1]
     return "default"
-
-
-def prepare_run_dir(out: Path, resume: bool, force: bool) -> None:
-    """Refuse to clobber a run (checks only: nothing is moved; see `move_aside`). --resume needs a run: its
-    checkpoint, or at least its config.json (a run killed before its step-0 checkpoint starts over)."""
-    if resume:
-        if not (out / layout.CHECKPOINT).exists() and not (out / layout.CONFIG).exists():
-            raise FileNotFoundError(f"{out}: nothing to resume (no {layout.CHECKPOINT} and no {layout.CONFIG})")
-        return
-    if out.exists() and not out.is_dir():
-        raise FileExistsError(f"{out} is a file, not a run directory")
-    if out.exists() and any(out.iterdir()) and not force:
-        state = layout.open_run(out).state if (out / layout.CONFIG).exists() else {}
-        what = "a finished run" if state.get("finished") else "an unfinished run (use --resume)" if state \
-            else "files"
-        raise FileExistsError(f"{out} already holds {what}; pass --force to start over (it is moved aside)")
-
-
-def move_aside(out: Path) -> Path | None:
-    """With --force, after the inputs were checked: move a non-empty `out` to OUT.old-TIME (never deleted)."""
-    if not (out.exists() and any(out.iterdir())):
-        return None
-    backup = out.with_name(f"{out.name}.old-{time.strftime('%Y%m%d-%H%M%S')}")
-    shutil.move(str(out), str(backup))
-    print(f"moved the previous contents of {out} to {backup}", file=sys.stderr)
-    return backup
 
 
 # settings a resumed run takes from the command line: they change how it is run, not what is being optimised
