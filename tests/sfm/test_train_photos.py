@@ -47,3 +47,52 @@ def test_train_on_photos_poses_into_the_cache_once(tmp_path, monkeypatch, synthe
     fp = json.loads((capture / WORK / FINGERPRINT).read_text())
     assert [f[0] for f in fp["files"]] == [f"{c.name}.png" for c in cams]
     assert fp["files"][0][1] == (folder / "frame_000.png").stat().st_size
+
+
+def _photos(folder):
+    import numpy as np
+    from PIL import Image
+
+    folder.mkdir()
+    rng = np.random.default_rng(0)
+    for i in range(3):
+        Image.fromarray(rng.integers(0, 255, (24, 32, 3), dtype=np.uint8)).save(folder / f"p{i}.jpg")
+    return folder
+
+
+def test_train_on_photos_checks_out_and_device_before_structure_from_motion(tmp_path, monkeypatch, capsys):
+    """A bad --device, an --out that holds files (no --force), or --resume of nothing fail at once: the structure
+    from motion that would pose the photos first (minutes) is never started."""
+    import torch
+
+    import trisplat.sfm.cache
+    from trisplat.cli import main
+
+    def no_sfm(*a, **k):
+        raise AssertionError("structure from motion was started before the cheap checks")
+
+    monkeypatch.setattr(trisplat.sfm.cache, "posed_capture", no_sfm)
+    monkeypatch.setattr(trisplat.sfm.cache, "cache_folder", no_sfm)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    photos = _photos(tmp_path / "photos")
+    assert is_plain_image_folder(photos)
+
+    assert main(["train", str(photos), "--out", str(tmp_path / "new"), "--device", "cuda", "--preset", "fast"]) == 1
+    assert "device 'cuda'" in capsys.readouterr().err and not (tmp_path / "new").exists()
+
+    busy = tmp_path / "busy"
+    busy.mkdir()
+    (busy / "notes.txt").write_text("mine")
+    assert main(["train", str(photos), "--out", str(busy), "--preset", "fast"]) == 1
+    assert f"{busy} already holds files; pass --force" in capsys.readouterr().err
+    assert sorted(p.name for p in busy.iterdir()) == ["notes.txt"]
+
+    assert main(["train", str(photos), "--out", str(tmp_path / "none"), "--resume"]) == 1
+    assert "nothing to resume" in capsys.readouterr().err
+
+    for bad, said in ((["--downscale", "3"], "downscale must be one of"), (["--steps", "0"], "--steps must be at least 1"),
+                      (["--minutes", "0"], "--minutes must be > 0")):
+        assert main(["train", str(photos), "--out", str(tmp_path / "new"), *bad]) == 1
+        assert said in capsys.readouterr().err
+    assert not (tmp_path / "new").exists() and not (tmp_path / "xdg").exists()

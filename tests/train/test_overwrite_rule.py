@@ -102,3 +102,25 @@ def test_train_force_checks_the_capture_before_moving_the_old_run(run, tmp_path,
     assert cli_main(["train", str(tmp_path / "no-such-capture"), "--out", str(old), "--force", "--quiet"]) == 1
     assert "no-such-capture" in capsys.readouterr().err
     assert _snapshot(old) == before and not list(tmp_path.glob("old.old-*"))  # nothing was moved aside
+
+
+def test_render_and_demo_check_their_options_before_the_long_work(run, tmp_path, capsys, monkeypatch):
+    """Cheap checks first: render refuses --device cuda without CUDA before loading the model; demo refuses a bad
+    --steps / --minutes before generating its scene (a minute of ray casting)."""
+    import torch
+
+    import trisplat.run
+    import trisplat.synth
+
+    def never(*a, **k):
+        raise AssertionError("the long work started before the cheap checks")
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    monkeypatch.setattr(trisplat.run.Run, "load_model", never)
+    assert cli_main(["render", str(run), "--out", str(tmp_path / "r"), "--device", "cuda"]) == 1
+    assert "device 'cuda'" in capsys.readouterr().err and not (tmp_path / "r").exists()
+
+    monkeypatch.setattr(trisplat.synth, "write_blender_scene", never)
+    for bad, said in ((["--steps", "0"], "--steps must be at least 1"), (["--minutes", "-1"], "--minutes must be > 0")):
+        assert cli_main(["demo", "--out", str(tmp_path / "demo"), *bad]) == 1
+        assert said in capsys.readouterr().err and not (tmp_path / "demo").exists()

@@ -1,6 +1,7 @@
 """`trisplat demo`: generate the built-in scene, train it with the fast preset, write an HTML page of the result."""
 from __future__ import annotations
 
+import dataclasses
 import html
 import json
 import sys
@@ -88,10 +89,14 @@ PSNR {fmt(metrics.get('psnr_1spp', metrics.get('psnr')), 2)} dB);
 
 def main(argv: list[str]) -> int:
     args = tyro.cli(DemoArgs, args=argv, description=help_description(DemoArgs.__doc__), prog=PROG, config=CLI_STYLE)
-    from trisplat.commands.train import make_train_args, run_training
+    from trisplat.commands.train import check_cheap_options, make_train_args, run_training
 
     out = args.out
     run_dir = out / "run"
+    # the training options are checked before the scene is generated (a minute of ray casting)
+    train_args = make_train_args(out / "scene", run_dir, "fast", quiet=args.quiet, minutes=args.minutes,
+                                 steps=args.steps)
+    check_cheap_options(dataclasses.replace(train_args, force=True))
     if args.force and out.exists():
         from trisplat.commands.train import move_aside
 
@@ -102,8 +107,8 @@ def main(argv: list[str]) -> int:
         resume = state is not None and (run_dir / layout.CHECKPOINT).exists()
         if resume and not args.quiet:
             print(f"resuming the interrupted demo run in {run_dir}", file=sys.stderr)
-        run_training(make_train_args(scene_dir, run_dir, "fast", resume=resume, force=state is not None and not resume,
-                                     quiet=args.quiet, minutes=args.minutes, steps=args.steps))
+        run_training(dataclasses.replace(train_args, data=scene_dir, resume=resume,
+                                         force=state is not None and not resume))
     page = write_page(out, run_dir)
     m = json.loads((run_dir / layout.METRICS).read_text())
     print(f"demo done: test PSNR {m['psnr']:.2f} dB with {m['faces']} opaque faces. Open {page.resolve()}")

@@ -45,8 +45,8 @@ def render_split(args: RenderArgs) -> list[Path]:
     from trisplat.render.warp_backend import backend_for, resolve_device
 
     run = open_run(args.run)
+    dev = resolve_device(args.device)  # cheap checks before the model and the capture are loaded
     scene, _ = run.load_model()
-    dev = resolve_device(args.device)
     scene = dataclasses.replace(scene, positions=scene.positions.to(dev), sh=scene.sh.to(dev),
                                 opacity_logit=scene.opacity_logit.to(dev), faces=scene.faces.to(dev))
     data = run.load_scene_data()

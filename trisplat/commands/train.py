@@ -156,6 +156,25 @@ def run_training(args: TrainArgs, explicit: set[str] | None = None):
     return trainer.train()
 
 
+def check_cheap_options(args: TrainArgs) -> None:
+    """What can be checked in a moment, before the long work (posing plain photos by structure from motion, loading
+    the capture): --device, --out's overwrite and resume rules, the step count and time budget, and the options the
+    capture is loaded with. run_training checks them again (it has other callers)."""
+    from trisplat.data.options import LoadOptions
+    from trisplat.render.warp_backend import resolve_device
+
+    cfg = args.config
+    resolve_device(args.device)
+    if cfg.steps < 1:
+        raise ValueError(f"--steps must be at least 1, got {cfg.steps}")
+    if cfg.minutes is not None and not cfg.minutes > 0:
+        raise ValueError(f"--minutes must be > 0, got {cfg.minutes}")
+    if not args.resume:  # a resumed run loads its capture with its saved options
+        LoadOptions(downscale=cfg.downscale, background=cfg.background, test_every=cfg.test_every,
+                    format=cfg.data_format)
+    prepare_run_dir(args.out, args.resume, args.force)
+
+
 def pose_plain_photos(args: TrainArgs) -> TrainArgs:
     """A folder of photos without poses (or a video) is posed by `trisplat poses` first, into a cache folder
     outside it (trisplat.sfm.cache); the run then trains on that capture."""
@@ -232,10 +251,11 @@ def main(argv: list[str]) -> int:
     # FlagCreatePairsOff: a preset may turn a flag either way (`--no-final-max-weight-pass`, `--final-max-weight-pass`)
     args = tyro.cli(TrainArgs, args=argv, default=default, description=help_description(TrainArgs.__doc__), prog=PROG,
                     config=(tyro.conf.OmitArgPrefixes, tyro.conf.HelptextFromCommentsOff))
-    args = pose_plain_photos(args)
-    explicit = explicit_fields(argv)
-    args = choose_downscale(args, explicit)
     try:
+        check_cheap_options(args)  # a typo costs nothing, not minutes of structure from motion
+        args = pose_plain_photos(args)
+        explicit = explicit_fields(argv)
+        args = choose_downscale(args, explicit)
         result = run_training(args, explicit)
     except FileExistsError as exc:
         print(f"trisplat train: {exc}", file=sys.stderr)
