@@ -22,13 +22,15 @@ LONG_SUITES: dict[str, tuple[str, str]] = {
                   "scripts/ci_extras.sh --blender)"),
     "slam": ("trisplat.bench.slam", "trisplat slam vs Open3D odometry + TSDF on an RGB-D capture: ATE, time, mesh "
              "Chamfer (needs open3d-cpu; long: not part of 'all')"),
+    "switch-memory": ("trisplat.bench.switch_memory", "peak memory of the soup-to-surface switch on a synthetic "
+                      "capture (default 300 photos of 4000x3000; long: tens of minutes)"),
 }
 DEFAULT_OUT = Path("bench_results")
 INDEX_MD = "index.md"
 
 
 def _usage() -> str:
-    lines = ["usage: trisplat bench {render,train,mesh,losses,poses,consumers,slam,all} [options]   "
+    lines = ["usage: trisplat bench {render,train,mesh,losses,poses,consumers,slam,switch-memory,all} [options]   "
              "(trisplat bench SUITE --help for its options)",
              "", "Each suite writes <name>.json (with machine, versions, commit) and <name>.md into --out "
              f"(default {DEFAULT_OUT}/).", "", "suites:"]  # fmt: skip

@@ -16,7 +16,8 @@ has no thickness to go by, and without that bound it
 filled everything the cameras could not look behind (lego's base plate, seen only from above, became a block down to
 the bottom of the box, which low test views showed: -4 to -8 dB there); with it, the inside of a closed object is a
 cavity whose surface `extract_surface` drops (it is inside-out). A voxel
-inside no view is free (+1): nothing was seen there. Occluded views also cast a weak vote for solid
+inside no view is free (+1): nothing was seen there. Views are integrated a batch at a time (`TSDFVolume`): memory is
+the grid's, not the views'. Occluded views also cast a weak vote for solid
 (OCCLUSION_WEIGHT): without it, one ray with a wrong depth (a gap between soup triangles, a grazing face) would
 carve the inside of an object that every other view sees from outside.
 """
@@ -28,7 +29,7 @@ import numba as nb
 import numpy as np
 
 OCCLUSION_WEIGHT = 0.1  # an occluded view's vote for solid, against 1 for a view that sees the voxel (see fuse_depths)
-MAX_VOXELS = 64_000_000  # a grid larger than this is refused (memory: 8 bytes per voxel, plus marching cubes)
+MAX_VOXELS = 64_000_000  # a grid larger than this is refused (memory: 10 bytes per voxel, plus marching cubes)
 
 
 @dataclass(frozen=True)
@@ -48,6 +49,8 @@ class FusionGrid:
 # the compiler may drop the isnan / isinf tests
 @nb.njit(parallel=True, cache=True, fastmath={"nsz", "arcp", "contract", "afn", "reassoc"})
 def _fuse_kernel(dims, origin, voxel, w2c, K, sizes, depths, trunc, near, occ_w, sdf_sum, w_sum, in_view, band):
+    """Add the votes of a batch of views (w2c [B,4,4], K [B,3,3], sizes [B,2], depths [B,H,W]) to the accumulators
+    sdf_sum, w_sum (float32 [X,Y,Z]), in_view, band (bool [X,Y,Z])."""
     X, Y, Z = dims[0], dims[1], dims[2]
     n_views = w2c.shape[0]
     for i in nb.prange(X):
@@ -94,10 +97,12 @@ def _fuse_kernel(dims, origin, voxel, w2c, K, sizes, depths, trunc, near, occ_w,
                             s = 1.0
                     s_acc += s
                     w_acc += 1.0
-                sdf_sum[i, j, k] = s_acc
-                w_sum[i, j, k] = w_acc
-                in_view[i, j, k] = n_in > 0
-                band[i, j, k] = n_band > 0
+                if n_in > 0:
+                    sdf_sum[i, j, k] += s_acc
+                    w_sum[i, j, k] += w_acc
+                    in_view[i, j, k] = True
+                    if n_band > 0:
+                        band[i, j, k] = True
 
 
 def grid_shape(bounds: np.ndarray, resolution: int) -> tuple[tuple[int, int, int], float]:
@@ -112,13 +117,91 @@ def grid_shape(bounds: np.ndarray, resolution: int) -> tuple[tuple[int, int, int
     return dims, voxel
 
 
+class TSDFVolume:
+    """The fusion's accumulators over a box, fed a few views at a time (`integrate`), so that no more than a batch
+    of depth maps is ever held: the field of `fuse_depths`, streamed. Memory: 10 bytes per voxel (vote sum and
+    weight float32, two flags), plus the batch being integrated."""
+
+    def __init__(self, bounds, resolution: int = 256, truncation_voxels: float = 3.0, near: float = 1e-3,
+                 occlusion_weight: float = OCCLUSION_WEIGHT):
+        self.dims, self.voxel = grid_shape(bounds, resolution)
+        if int(np.prod(self.dims)) > MAX_VOXELS:
+            raise ValueError(f"depth fusion grid {self.dims} has more than {MAX_VOXELS} voxels: lower the resolution")
+        self.origin = np.asarray(bounds, dtype=np.float64)[0].copy()
+        self.truncation = float(truncation_voxels) * self.voxel
+        self.near, self.occlusion_weight = float(near), float(occlusion_weight)
+        self.sdf_sum = np.zeros(self.dims, np.float32)
+        self.w_sum = np.zeros(self.dims, np.float32)
+        self.in_view = np.zeros(self.dims, np.bool_)
+        self.band = np.zeros(self.dims, np.bool_)
+        self.views = 0
+
+    def integrate(self, cameras, depths) -> None:
+        """Add the votes of `cameras` (world_to_camera, K, width, height) with their view-depth maps `depths`
+        (float [H,W] each, or one float32 [B,H,W] stack whose views may be larger than their cameras: the top-left
+        height x width of each is used)."""
+        if len(cameras) != len(depths):
+            raise ValueError(f"{len(cameras)} cameras but {len(depths)} depth maps")
+        if len(cameras) == 0:
+            return
+        if isinstance(depths, np.ndarray) and depths.ndim == 3 and depths.dtype == np.float32:
+            stack = depths
+            if any(c.height > stack.shape[1] or c.width > stack.shape[2] for c in cameras):
+                raise ValueError(f"a depth stack of {stack.shape[2]}x{stack.shape[1]} is smaller than its cameras")
+        else:
+            stack = np.full((len(cameras), max(int(c.height) for c in cameras), max(int(c.width) for c in cameras)),
+                            np.nan, dtype=np.float32)
+            for n, (cam, d) in enumerate(zip(cameras, depths)):
+                _check_depth(self.views + n, cam, d)
+                stack[n, : cam.height, : cam.width] = d
+        sizes = np.array([(int(c.width), int(c.height)) for c in cameras], np.int64)
+        w2c = np.stack([np.asarray(c.world_to_camera, dtype=np.float64) for c in cameras])
+        K = np.stack([np.asarray(c.K, dtype=np.float64) for c in cameras])
+        _fuse_kernel(np.asarray(self.dims, np.int64), self.origin, self.voxel, w2c, K, sizes, stack,
+                     self.truncation, self.near, self.occlusion_weight, self.sdf_sum, self.w_sum, self.in_view,
+                     self.band)
+        self.views += len(cameras)
+
+    def grid(self, max_depth: float = float("inf")) -> FusionGrid:
+        """The field so far (see fuse_depths for the rule and `max_depth`)."""
+        observed = self.w_sum > 0
+        # observed: the mean; inside some view but always behind its surface: occluded, solid; in no view: free
+        sdf = np.divide(self.sdf_sum, self.w_sum, out=np.zeros(self.dims, np.float32), where=observed)
+        np.clip(sdf, -1.0, 1.0, out=sdf)
+        np.copyto(sdf, np.where(self.in_view, np.float32(-1.0), np.float32(1.0)), where=~observed)
+        del observed
+        if np.isfinite(max_depth) and self.band.any():
+            from scipy import ndimage
+
+            # a ramp over one truncation distance, not a step: the cut is an offset surface of what was observed,
+            # smooth, instead of a staircase of voxels
+            dist = ndimage.distance_transform_edt(~self.band, sampling=self.voxel).astype(np.float32)
+            dist -= np.float32(max_depth)
+            dist /= np.float32(self.truncation)
+            np.clip(dist, -1.0, 1.0, out=dist)
+            np.maximum(sdf, dist, out=sdf, where=sdf < 0)
+        return FusionGrid(sdf, self.w_sum.copy(), self.origin.copy(), self.voxel, self.truncation)
+
+
+def _check_depth(n: int, cam, d) -> None:
+    shape = np.shape(d)
+    if shape != (cam.height, cam.width):
+        got = f"{shape[1]}x{shape[0]}" if len(shape) == 2 else f"of shape {shape}"
+        raise ValueError(f"depth map {n} is {got}, its camera is {cam.width}x{cam.height}")
+
+
+FUSE_BATCH_BYTES = 256 * 2**20  # depth maps integrated together (one pass over the grid per batch)
+
+
 def fuse_depths(cameras, depths, bounds, resolution: int = 256, truncation_voxels: float = 3.0,
                 near: float = 1e-3, occlusion_weight: float = OCCLUSION_WEIGHT,
-                max_depth: float = float("inf")) -> FusionGrid:
+                max_depth: float = float("inf"), batch_bytes: int = FUSE_BATCH_BYTES) -> FusionGrid:
     """TSDF of the depth maps inside `bounds` (float [2,3], normalised frame).
 
     cameras: objects with world_to_camera [4,4], K [3,3], width, height (trisplat.cameras.Camera); depths: one
-    float [H,W] view-depth map per camera (inf = nothing seen, nan = unknown). Each voxel averages, over the views
+    float [H,W] view-depth map per camera (inf = nothing seen, nan = unknown), a sequence or any iterable (a
+    generator that renders each view when asked): the maps are consumed a batch of about `batch_bytes` at a time
+    and not kept, so memory does not grow with the number of views. Each voxel averages, over the views
     that see it in front of or within `truncation_voxels` voxels behind their surface, the clipped signed distance
     (depth - voxel depth) / truncation; views where it lies farther behind the surface add -`occlusion_weight` to
     the sum (not to the weight), views where it lies outside the image or behind the camera say nothing. Voxels
@@ -128,45 +211,36 @@ def fuse_depths(cameras, depths, bounds, resolution: int = 256, truncation_voxel
     free: the field near what the cameras measured is unchanged, and unseen space is a shell of that thickness
     behind it, not a block.
     """
-    if len(cameras) != len(depths):
+    cameras = list(cameras)
+    if hasattr(depths, "__len__") and len(cameras) != len(depths):
         raise ValueError(f"{len(cameras)} cameras but {len(depths)} depth maps")
     if len(cameras) == 0:
         raise ValueError("depth fusion needs at least one view")
-    dims, voxel = grid_shape(bounds, resolution)
-    if int(np.prod(dims)) > MAX_VOXELS:
-        raise ValueError(f"depth fusion grid {dims} has more than {MAX_VOXELS} voxels: lower the resolution")
+    vol = TSDFVolume(bounds, resolution, truncation_voxels, near, occlusion_weight)
     Hm = max(int(c.height) for c in cameras)
     Wm = max(int(c.width) for c in cameras)
-    stack = np.full((len(cameras), Hm, Wm), np.nan, dtype=np.float32)
-    sizes = np.zeros((len(cameras), 2), np.int64)
-    for n, (cam, d) in enumerate(zip(cameras, depths)):
-        d = np.asarray(d, dtype=np.float32)
-        if d.shape != (cam.height, cam.width):
-            raise ValueError(f"depth map {n} is {d.shape[1]}x{d.shape[0]}, its camera is {cam.width}x{cam.height}")
-        stack[n, : cam.height, : cam.width] = d
-        sizes[n] = (cam.width, cam.height)
-    w2c = np.stack([np.asarray(c.world_to_camera, dtype=np.float64) for c in cameras])
-    K = np.stack([np.asarray(c.K, dtype=np.float64) for c in cameras])
-    origin = np.asarray(bounds, dtype=np.float64)[0]
-    trunc = float(truncation_voxels) * voxel
-    sdf_sum = np.empty(dims, np.float32)
-    w_sum = np.empty(dims, np.float32)
-    in_view = np.empty(dims, np.bool_)
-    band = np.empty(dims, np.bool_)
-    _fuse_kernel(np.asarray(dims, np.int64), origin, voxel, w2c, K, sizes, stack, trunc, float(near),
-                 float(occlusion_weight), sdf_sum, w_sum, in_view, band)
-    # observed: the mean; inside some view but always behind its surface: occluded, solid; in no view: free
-    sdf = np.where(w_sum > 0, np.clip(sdf_sum / np.maximum(w_sum, 1e-12), -1.0, 1.0),
-                   np.where(in_view, -1.0, 1.0)).astype(np.float32)
-    if np.isfinite(max_depth) and band.any():
-        from scipy import ndimage
-
-        # a ramp over one truncation distance, not a step: the cut is an offset surface of what was observed,
-        # smooth, instead of a staircase of voxels
-        dist = ndimage.distance_transform_edt(~band, sampling=voxel).astype(np.float32)
-        ramp = np.clip((dist - max_depth) / trunc, -1.0, 1.0)
-        np.maximum(sdf, ramp, out=sdf, where=sdf < 0)
-    return FusionGrid(sdf, w_sum, origin, voxel, trunc)
+    per_batch = int(max(1, min(len(cameras), batch_bytes // (4 * Hm * Wm))))
+    stack = np.empty((per_batch, Hm, Wm), np.float32)
+    n = 0
+    it = iter(depths)
+    while n < len(cameras):
+        b = 0
+        while b < per_batch and n + b < len(cameras):
+            try:
+                d = next(it)
+            except StopIteration:
+                raise ValueError(f"{len(cameras)} cameras but {n + b} depth maps") from None
+            cam = cameras[n + b]
+            _check_depth(n + b, cam, d)
+            stack[b] = np.nan
+            stack[b, : cam.height, : cam.width] = d
+            del d
+            b += 1
+        vol.integrate(cameras[n: n + b], stack[:b])
+        n += b
+    if next(it, None) is not None:
+        raise ValueError(f"{len(cameras)} cameras but more depth maps")
+    return vol.grid(max_depth)
 
 
 def extract_surface(grid: FusionGrid, drop_cavities: bool = True) -> tuple[np.ndarray, np.ndarray]:

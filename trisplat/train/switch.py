@@ -12,7 +12,7 @@ Training then fine-tunes this mesh (the trainer keeps its connectivity: no soup-
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Literal
 
@@ -71,6 +71,11 @@ class SurfaceConfig:
     """empty pixels closer than this (pixels) to covered ones on two sides (a morphological closing) take the depth
     of the nearest covered pixel: a soup has gaps between its triangles, and one ray through a gap would carve the
     inside of the object away (free space wins where nothing else is observed)."""
+    depth_memory_mb: float = 1024.0
+    """the views' depth maps are needed again after the fusion (which faces some view sees, the photos' colours):
+    this many MiB of them are kept in memory, the rest in a temporary folder (TMPDIR; 4 bytes per pixel per view),
+    read back one at a time. The photos are loaded one at a time too: the switch's memory does not grow with the
+    number of views (docs/benchmarks.md, "Switch memory")."""
 
 
 @dataclass
@@ -102,31 +107,38 @@ class SwitchReport:
                 f"{self.render_s + self.fuse_s + self.mesh_s:.1f} s)")
 
 
+SURFACE_DEPTH_CHUNK = 1 << 20  # pixels whose plane depth is solved together (about 200 bytes each while it runs)
+
+
 def surface_depth(face_id: np.ndarray, positions: np.ndarray, faces: np.ndarray, world_to_camera: np.ndarray,
                   K: np.ndarray) -> np.ndarray:
     """View depth [H,W] where each pixel centre's ray meets the plane of its face `face_id` [H,W] (the face at
     which the accumulated blending weight passes 0.5, the "median depth" of 2DGS-style extraction); inf where
-    face_id < 0 (nothing there: free space). Grazing planes fall back to the face's mean depth."""
+    face_id < 0 (nothing there: free space). Grazing planes fall back to the face's mean depth. Solved
+    SURFACE_DEPTH_CHUNK pixels at a time (a 12-megapixel view would otherwise hold gigabytes of temporaries)."""
     H, W = face_id.shape
     depth = np.full((H, W), np.inf, dtype=np.float32)
-    rows, cols = np.nonzero(face_id >= 0)
-    if len(rows) == 0:
-        return depth
-    f = face_id[rows, cols]
-    R, t = world_to_camera[:3, :3], world_to_camera[:3, 3]
-    tri = positions[faces[f]] @ R.T + t  # [n,3,3] camera frame
-    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    flat_fid = face_id.reshape(-1)
+    flat_depth = depth.reshape(-1)
+    R, t = np.asarray(world_to_camera)[:3, :3], np.asarray(world_to_camera)[:3, 3]
     Kinv = np.linalg.inv(K)
-    ray = np.stack([cols + 0.5, rows + 0.5, np.ones(len(rows))], 1) @ Kinv.T  # z = 1
-    den = np.einsum("ij,ij->i", normal, ray)
-    num = np.einsum("ij,ij->i", normal, tri[:, 0])
-    mean_z = tri[:, :, 2].mean(1)
-    ok = np.abs(den) > 1e-6 * np.linalg.norm(normal, axis=1) * np.linalg.norm(ray, axis=1)
-    z = np.where(ok, num / np.where(ok, den, 1.0), mean_z)
-    z = np.where(np.isfinite(z) & (z > 0), z, mean_z)
-    # a plane met far outside its triangle (grazing): clamp to the triangle's depth range
-    z = np.clip(z, tri[:, :, 2].min(1), tri[:, :, 2].max(1))
-    depth[rows, cols] = z
+    for start in range(0, H * W, SURFACE_DEPTH_CHUNK):
+        sel = np.flatnonzero(flat_fid[start: start + SURFACE_DEPTH_CHUNK] >= 0) + start
+        if len(sel) == 0:
+            continue
+        rows, cols = np.divmod(sel, W)
+        f = flat_fid[sel]
+        tri = positions[faces[f]] @ R.T + t  # [n,3,3] camera frame
+        normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        ray = np.stack([cols + 0.5, rows + 0.5, np.ones(len(rows))], 1) @ Kinv.T  # z = 1
+        den = np.einsum("ij,ij->i", normal, ray)
+        num = np.einsum("ij,ij->i", normal, tri[:, 0])
+        mean_z = tri[:, :, 2].mean(1)
+        ok = np.abs(den) > 1e-6 * np.linalg.norm(normal, axis=1) * np.linalg.norm(ray, axis=1)
+        z = np.where(ok, num / np.where(ok, den, 1.0), mean_z)
+        z = np.where(np.isfinite(z) & (z > 0), z, mean_z)
+        # a plane met far outside its triangle (grazing): clamp to the triangle's depth range
+        flat_depth[sel] = np.clip(z, tri[:, :, 2].min(1), tri[:, :, 2].max(1))
     return depth
 
 
@@ -212,18 +224,82 @@ def seen_counts(cameras: Sequence, depths: Sequence, points: np.ndarray, toleran
     return cnt
 
 
-def image_colors(cameras: Sequence, images: Sequence, depths: Sequence, points: np.ndarray, tolerance: float
+def image_colors(cameras: Sequence, images: Iterable, depths: Sequence, points: np.ndarray, tolerance: float
                  ) -> tuple[np.ndarray, np.ndarray]:
     """Mean RGB [P,3] of `points` over the views that see them (the point projects into the image, in front of the
-    camera, within `tolerance` scene units of that view's surface depth), and the number of such views [P]."""
+    camera, within `tolerance` scene units of that view's surface depth), and the number of such views [P].
+    images: one [H,W,3+] photo per camera, float in [0,1] or uint8, in camera order; any iterable (a generator that
+    loads each photo when asked: only one is held at a time)."""
     acc = np.zeros((len(points), 3))
     cnt = np.zeros(len(points))
     for cam, img, depth in zip(cameras, images, depths):
+        img = np.asarray(img)
         idx, row, col = _visible(cam, depth, points, tolerance)
-        acc[idx] += np.asarray(img)[row, col, :3]
+        rgb = img[row, col, :3].astype(np.float64)
+        acc[idx] += rgb / 255.0 if img.dtype == np.uint8 else rgb
         cnt[idx] += 1
+        del img
     out = acc / np.maximum(cnt, 1)[:, None]
     return out, cnt
+
+
+class DepthStore(Sequence):
+    """The switch's depth maps, one per view, kept for the passes after fusion (which faces some view sees, the
+    photos' colours): the first `memory_bytes` worth in memory, the rest written to a temporary folder (TMPDIR)
+    and read back one at a time, so a capture of hundreds of large photos does not hold them all. A context
+    manager: the folder is removed on exit."""
+
+    def __init__(self, memory_bytes: int):
+        self.memory_bytes = int(memory_bytes)
+        self._items: list[np.ndarray | str] = []
+        self._held = 0
+        self._dir = None
+
+    def append(self, depth: np.ndarray) -> None:
+        depth = np.ascontiguousarray(depth, dtype=np.float32)
+        if self._held + depth.nbytes <= self.memory_bytes:
+            self._items.append(depth)
+            self._held += depth.nbytes
+            return
+        import tempfile
+
+        if self._dir is None:
+            self._dir = tempfile.TemporaryDirectory(prefix="trisplat-switch-")
+        path = f"{self._dir.name}/depth_{len(self._items):06d}.npy"
+        try:
+            np.save(path, depth)
+        except OSError as exc:
+            raise RuntimeError(
+                f"the switch could not write depth map {len(self._items)} to {path} ({exc}); it needs about "
+                f"{depth.nbytes / 2**30:.2f} GiB per view there: set TMPDIR to a folder with room, or train with a "
+                "larger --downscale") from exc
+        self._items.append(path)
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def __getitem__(self, n):
+        if isinstance(n, slice):
+            return [self[k] for k in range(*n.indices(len(self)))]
+        item = self._items[n]
+        return np.load(item) if isinstance(item, str) else item
+
+    @property
+    def spilled(self) -> int:
+        """How many of the maps live on disk."""
+        return sum(isinstance(x, str) for x in self._items)
+
+    def close(self) -> None:
+        self._items.clear()
+        if self._dir is not None:
+            self._dir.cleanup()
+            self._dir = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
 
 def unseen_faces(verts: np.ndarray, faces: np.ndarray, cameras: Sequence, depths: Sequence, tolerance: float,
@@ -260,62 +336,77 @@ def soup_to_surface(scene: TriangleScene, cameras: Sequence, render: Callable[[i
     rep = SwitchReport(soup_faces=scene.num_faces, soup_vertices=scene.num_vertices, views=len(cameras))
     pos = scene.positions.detach().cpu().numpy().astype(np.float64)
     fc = scene.faces.detach().cpu().numpy().astype(np.int64)
-    t0 = time.perf_counter()
-    depths = []
-    for n, cam in enumerate(cameras):
-        out = render(n)
-        d = fill_holes(surface_depth(out.face_id.cpu().numpy(), pos, fc, np.asarray(cam.world_to_camera),
-                                     np.asarray(cam.K)), config.fill_holes_px)
-        depths.append(d if config.empty_is_free else np.where(np.isinf(d), np.nan, d))
-    rep.render_s = time.perf_counter() - t0
-    if not any(np.isfinite(d).any() for d in depths):
-        raise ValueError("the soup covers no pixel of any training view: nothing to turn into a surface")
-    t0 = time.perf_counter()
     box = fusion_box(pos, bounds)
     res = fitting_resolution(box, config.resolution, config.max_voxels)
     rep.grid, rep.voxel = grid_shape(box, res)
-    grid = fuse_depths(cameras, depths, box, res, config.truncation_voxels,
-                       max_depth=max(config.max_depth_fraction * float((box[1] - box[0]).max()),
-                                     MIN_DEPTH_VOXELS * rep.voxel))
-    rep.fuse_s = time.perf_counter() - t0
-    if progress:
-        progress(f"fused {len(cameras)} depth maps ({rep.fuse_s:.1f} s); extracting the surface")
-    t0 = time.perf_counter()
-    verts, faces = extract_surface(grid)
-    rep.marching_cubes_faces = len(faces)
-    if len(faces) == 0:
-        raise ValueError("depth fusion found no surface (every voxel is free): the soup's renders are empty")
-    if config.unseen_faces != "keep":
-        drop = unseen_faces(verts, faces, cameras, depths, config.truncation_voxels * rep.voxel,
-                            enclosed_only=config.unseen_faces == "drop_enclosed")
-        rep.notes.append(f"{int(drop.sum())} of {len(faces)} faces no view saw dropped ({config.unseen_faces})")
-        faces = faces[~drop]
+    # the depth maps outlive the fusion (seen faces, photo colours): in memory up to depth_memory_mb, then on disk
+    with DepthStore(int(config.depth_memory_mb * 2**20)) as depths:
+        covered = False
+
+        def depth_maps():
+            # one view at a time: render, surface depth, into the store (memory or disk) and on to the fusion
+            nonlocal covered
+            for n, cam in enumerate(cameras):
+                t = time.perf_counter()
+                out = render(n)
+                d = fill_holes(surface_depth(out.face_id.cpu().numpy(), pos, fc, np.asarray(cam.world_to_camera),
+                                             np.asarray(cam.K)), config.fill_holes_px)
+                del out
+                if not config.empty_is_free:
+                    d[np.isinf(d)] = np.nan
+                covered = covered or bool(np.isfinite(d).any())
+                depths.append(d)
+                rep.render_s += time.perf_counter() - t
+                yield d
+
+        t0 = time.perf_counter()
+        grid = fuse_depths(cameras, depth_maps(), box, res, config.truncation_voxels,
+                           max_depth=max(config.max_depth_fraction * float((box[1] - box[0]).max()),
+                                         MIN_DEPTH_VOXELS * rep.voxel))
+        rep.fuse_s = time.perf_counter() - t0 - rep.render_s
+        if not covered:
+            raise ValueError("the soup covers no pixel of any training view: nothing to turn into a surface")
+        if depths.spilled:
+            rep.notes.append(f"{depths.spilled} of {len(depths)} depth maps kept on disk until the end of the switch")
+        if progress:
+            progress(f"fused {len(cameras)} depth maps ({rep.render_s:.1f} s rendering, {rep.fuse_s:.1f} s fusing); "
+                     "extracting the surface")
+        t0 = time.perf_counter()
+        verts, faces = extract_surface(grid)
+        rep.marching_cubes_faces = len(faces)
         if len(faces) == 0:
-            raise ValueError("no view sees any part of the fused surface: nothing is left to fine-tune")
-    verts, faces, rep.pieces, rep.pieces_dropped = _drop_small_pieces(verts, faces, config.min_component_fraction)
-    target = int(min(config.max_faces, max(config.face_ratio * scene.num_faces, 1_000)))
-    if len(faces) > target:
-        import fast_simplification
+            raise ValueError("depth fusion found no surface (every voxel is free): the soup's renders are empty")
+        if config.unseen_faces != "keep":
+            drop = unseen_faces(verts, faces, cameras, depths, config.truncation_voxels * rep.voxel,
+                                enclosed_only=config.unseen_faces == "drop_enclosed")
+            rep.notes.append(f"{int(drop.sum())} of {len(faces)} faces no view saw dropped ({config.unseen_faces})")
+            faces = faces[~drop]
+            if len(faces) == 0:
+                raise ValueError("no view sees any part of the fused surface: nothing is left to fine-tune")
+        verts, faces, rep.pieces, rep.pieces_dropped = _drop_small_pieces(verts, faces, config.min_component_fraction)
+        target = int(min(config.max_faces, max(config.face_ratio * scene.num_faces, 1_000)))
+        if len(faces) > target:
+            import fast_simplification
 
-        verts, faces = fast_simplification.simplify(verts, faces.astype(np.int32), target_count=target)
-        verts, faces = _manifold(np.asarray(verts), np.asarray(faces))
-    sh, opac = transfer_attributes(scene, verts, config.neighbours)
-    if images is not None:
-        from trisplat.scene.sh import rgb_to_sh_dc
+            verts, faces = fast_simplification.simplify(verts, faces.astype(np.int32), target_count=target)
+            verts, faces = _manifold(np.asarray(verts), np.asarray(faces))
+        sh, opac = transfer_attributes(scene, verts, config.neighbours)
+        if images is not None:
+            from trisplat.scene.sh import rgb_to_sh_dc
 
-        rgb, seen = image_colors(cameras, [images(n) for n in range(len(cameras))], depths, verts,
-                                 config.truncation_voxels * rep.voxel)
-        seen_t = torch.as_tensor(seen > 0)
-        sh[seen_t, 0] = rgb_to_sh_dc(torch.as_tensor(rgb[seen > 0], dtype=sh.dtype))
-        rep.notes.append(f"{int((seen > 0).sum())} of {len(verts)} vertices coloured from the photos")
-    floor = float(scene.opacity_floor)
-    o = torch.clamp(torch.maximum(opac, torch.full_like(opac, config.opacity)), floor + 1e-4, 1 - 1e-4)
-    logit = torch.logit((o - floor) / (1 - floor), eps=1e-6)
-    out = TriangleScene(torch.as_tensor(verts, dtype=torch.float32), sh.to(torch.float32).contiguous(),
-                        logit.to(torch.float32), torch.as_tensor(faces, dtype=torch.int32), floor)
-    rep.faces, rep.vertices = out.num_faces, out.num_vertices
-    rep.mesh_s = time.perf_counter() - t0
-    return out, rep
+            rgb, seen = image_colors(cameras, (images(n) for n in range(len(cameras))), depths, verts,
+                                     config.truncation_voxels * rep.voxel)
+            seen_t = torch.as_tensor(seen > 0)
+            sh[seen_t, 0] = rgb_to_sh_dc(torch.as_tensor(rgb[seen > 0], dtype=sh.dtype))
+            rep.notes.append(f"{int((seen > 0).sum())} of {len(verts)} vertices coloured from the photos")
+        floor = float(scene.opacity_floor)
+        o = torch.clamp(torch.maximum(opac, torch.full_like(opac, config.opacity)), floor + 1e-4, 1 - 1e-4)
+        logit = torch.logit((o - floor) / (1 - floor), eps=1e-6)
+        out = TriangleScene(torch.as_tensor(verts, dtype=torch.float32), sh.to(torch.float32).contiguous(),
+                            logit.to(torch.float32), torch.as_tensor(faces, dtype=torch.int32), floor)
+        rep.faces, rep.vertices = out.num_faces, out.num_vertices
+        rep.mesh_s = time.perf_counter() - t0
+        return out, rep
 
 
 def inner_box(radius: float = INNER_RADIUS) -> np.ndarray:
