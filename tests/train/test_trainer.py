@@ -363,7 +363,7 @@ def test_minutes_progress_bar_never_jumps_or_goes_back(tiny_scene, tmp_path, mon
         def close(self):
             pass
 
-    monkeypatch.setattr(trainer_mod, "tqdm", Recorder)
+    monkeypatch.setattr(trainer_mod, "progress_bar", Recorder)
     clock = {"t": 0.0}
     monkeypatch.setattr(trainer_mod, "time", type("FakeTime", (), {"perf_counter": staticmethod(lambda: clock["t"])}))
     tr = _trainer(tiny_scene, tmp_path / "bar", minutes=0.2, steps=10**6)
@@ -387,3 +387,51 @@ def test_minutes_progress_bar_never_jumps_or_goes_back(tiny_scene, tmp_path, mon
     monkeypatch.setattr(tr2, "finish", lambda: {})
     tr2.train()
     assert bars[-1].totals == [5] * len(bars[-1].totals) and bars[-1].seen[-1] == 5
+
+
+def test_progress_in_a_log_is_a_plain_line_every_few_percent(tiny_scene, tmp_path, monkeypatch, capsys):
+    """stderr redirected (not a terminal): the training bar writes one plain line per 5% of the steps, no carriage
+    returns (a bar redrawn at every step filled lego's log with 1.6 MB of them)."""
+    tr = _trainer(tiny_scene, tmp_path / "log", steps=400)
+    tr.show_progress = True
+    monkeypatch.setattr(tr, "train_step", lambda: {"ok": True, "loss": 0.1, "psnr": 20.0})
+    monkeypatch.setattr(tr, "_strategy", lambda p_prev, p: None)
+    monkeypatch.setattr(tr, "evaluate", lambda p, max_views=None: 0.0)
+    monkeypatch.setattr(tr, "finish", lambda: {})
+    tr.train()
+    err = capsys.readouterr().err
+    lines = [ln for ln in err.splitlines() if ln.startswith("train:")]
+    assert "\r" not in err
+    assert 20 <= len(lines) <= 22, lines  # 0%, 5%, ..., 100%
+    assert "400/400" in lines[-1] and "100%" in lines[-1]
+    done = [int(ln.split("|")[2].split("/")[0]) for ln in lines]
+    assert done == sorted(done) and all(b - a <= 25 for a, b in zip(done, done[1:]))  # no gap over ~5%
+
+
+def test_progress_bar_chooses_lines_for_a_file_and_tqdm_for_a_terminal(tmp_path):
+    import io
+
+    from tqdm import tqdm
+
+    from trisplat.progress import LogLines, progress_bar
+
+    log = io.StringIO()
+    for _ in progress_bar(range(3), file=log, desc="eval", mininterval=0):
+        pass
+    assert isinstance(progress_bar(total=1, file=io.StringIO()), LogLines)
+    assert log.getvalue().count("\n") == 4 and "\r" not in log.getvalue() and "3/3" in log.getvalue()
+
+    class Tty(io.StringIO):
+        def isatty(self):
+            return True
+
+    bar = progress_bar(total=10, file=Tty())
+    assert type(bar) is tqdm
+    bar.close()
+    with open(tmp_path / "log.txt", "w") as f:  # a real file
+        bar = progress_bar(total=200, file=f, desc="x", mininterval=0, miniters=1)  # a slow loop: every update shown
+        for _ in range(200):
+            bar.update(1)
+        bar.close()
+    text = (tmp_path / "log.txt").read_text()
+    assert "\r" not in text and 20 <= text.count("\n") <= 22

@@ -147,7 +147,7 @@ def main(argv: list[str] | None = None) -> int:
                         device)
         print("RESULT " + json.dumps(row))
         return 0
-    from tqdm import tqdm
+    from trisplat.progress import progress_bar
 
     from trisplat.bench.common import BenchTable
 
@@ -171,7 +171,7 @@ def main(argv: list[str] | None = None) -> int:
                            "face's pixel box (a thread per pixel tests every face of its tile).")
     else:
         dev = None
-    for w, h, n, lo, hi in tqdm(cases, desc="bench render"):
+    for w, h, n, lo, hi in progress_bar(cases, desc="bench render"):
         ref = cfg.reference and n <= REFERENCE_MAX_FACES and w * h <= REFERENCE_MAX_PIXELS
         cmd = [sys.executable, "-m", "trisplat.bench.render", "--case", f"{w},{h},{n},{lo},{hi},{int(ref)}",
                "--repeats", str(cfg.repeats), "--sigma", str(cfg.sigma), "--backend", cfg.backend,

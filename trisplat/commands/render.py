@@ -7,9 +7,9 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 import tyro
-from tqdm import tqdm
 
 from trisplat.commands.style import CLI_STYLE, NO_DEFAULT_HINT, flowing_help
+from trisplat.progress import progress_bar
 
 
 PROG = "trisplat render"
@@ -60,7 +60,7 @@ def render_split(args: RenderArgs) -> list[Path]:
                               "; pass --force to overwrite")
     args.out.mkdir(parents=True, exist_ok=True)
     written = []
-    for i, path in tqdm(list(targets.items()), desc=f"render {args.split}"):
+    for i, path in progress_bar(list(targets.items()), desc=f"render {args.split}"):
         cam = data.cameras[i]
         write_png(render_view(scene, cam, args.mode, data.background, sigma, {"backend": backend_for(dev)},
                               supersample=ss), path)

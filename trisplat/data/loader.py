@@ -10,7 +10,6 @@ from pathlib import Path
 
 import numpy as np
 from PIL import Image
-from tqdm import tqdm
 
 from trisplat.cameras import Camera
 from trisplat.data.capture import RawCapture, RawView
@@ -18,6 +17,7 @@ from trisplat.data.images import LRUArrays, check_image_file, read_image, save_i
 from trisplat.data.normalize import apply_to_points, apply_to_world_to_camera, normalization, robust_box
 from trisplat.data.options import LoadOptions
 from trisplat.data.types import SceneData
+from trisplat.progress import progress_bar
 from trisplat.data.undistort import pinhole_camera, undistort_array
 
 CACHE_VERSION = 1  # bump when the derived-image recipe changes: old cache files are then ignored
@@ -305,7 +305,7 @@ def load_dataset(path, downscale: int = 1, **options) -> SceneData:
     if opts.prepare == "eager" and todo:
         undist = any(jobs[i].view.camera.needs_undistortion for i in todo)
         what = " + ".join(w for w, on in (("undistorting", undist), (f"downscaling x{d}", d > 1)) if on)
-        for i in tqdm(todo, desc=f"{what} {len(todo)} images -> {cache}", unit="img", leave=False):
+        for i in progress_bar(todo, desc=f"{what} {len(todo)} images -> {cache}", unit="img", leave=False):
             ensure(i)
 
     background = opts.background

@@ -6,10 +6,10 @@ import time
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from trisplat.eval.image_metrics import psnr, ssim
 from trisplat.eval.report import SplitMetrics, ViewImages, ViewMetrics, write_metrics, write_report
+from trisplat.progress import progress_bar
 
 FILE_MODE = "file"
 REPORT_MAX_IMAGE_VIEWS = 12
@@ -67,7 +67,7 @@ def evaluate_file(run_dir: str | Path, file: str | Path = "mesh.glb", split: str
         lpips_note = f"views smaller than LPIPS-AlexNet's {MIN_SIZE_PX}x{MIN_SIZE_PX} px minimum"
     shown = set(np.linspace(0, len(indices) - 1, min(len(indices), REPORT_MAX_IMAGE_VIEWS)).round().astype(int))
     views, images, render_s = [], [], 0.0
-    for k, i in enumerate(tqdm(indices, desc=f"eval {split} ({path.name})", unit="view", disable=not show_progress)):
+    for k, i in enumerate(progress_bar(indices, desc=f"eval {split} ({path.name})", unit="view", disable=not show_progress)):
         cam = data.cameras[i]
         t0 = time.perf_counter()
         rgb = render_asset(asset, cam.world_to_camera, cam.K, cam.width, cam.height, data.background, ss, near)

@@ -7,10 +7,10 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from trisplat.eval.image_metrics import psnr, ssim
 from trisplat.eval.report import SplitMetrics, ViewImages, ViewMetrics, write_metrics, write_report
+from trisplat.progress import progress_bar
 
 MODES = ("hard", "soft")
 SPLITS = ("test", "train")
@@ -187,7 +187,7 @@ def evaluate_run(
     views: list[ViewMetrics] = []
     images: list[ViewImages] = []
     render_s = 0.0
-    bar = tqdm(indices, desc=f"eval {split} ({mode})", unit="view", disable=not show_progress)
+    bar = progress_bar(indices, desc=f"eval {split} ({mode})", unit="view", disable=not show_progress)
     for k, i in enumerate(bar):
         cam = data.cameras[i]
         t0 = time.perf_counter()

@@ -171,9 +171,9 @@ def _chunks(seq: list, size: int):
 
 
 def _bar(total: int, desc: str, unit: str, progress: bool):
-    from tqdm import tqdm
+    from trisplat.progress import progress_bar
 
-    return tqdm(total=total, desc=desc, unit=unit, disable=not progress, leave=True)
+    return progress_bar(total=total, desc=desc, unit=unit, disable=not progress, leave=True)
 
 
 _OURS = ("images", "sparse", WORK, REPORT)

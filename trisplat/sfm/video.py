@@ -49,7 +49,7 @@ def extract_frames(video: Path, out_dir: Path, rate: float = 2.0, max_frames: in
     in the video, so names sort in time order.
     """
     from PIL import Image
-    from tqdm import tqdm
+    from trisplat.progress import progress_bar
 
     video = Path(video)
     if not video.is_file():
@@ -81,7 +81,7 @@ def extract_frames(video: Path, out_dir: Path, rate: float = 2.0, max_frames: in
         indices.append(idx)
         times.append(idx / fps)
 
-    bar = tqdm(total=n_total, desc="reading video", unit="frame", disable=not progress)
+    bar = progress_bar(total=n_total, desc="reading video", unit="frame", disable=not progress)
     try:
         for i, frame in enumerate(reader):
             read += 1

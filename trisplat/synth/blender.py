@@ -69,9 +69,9 @@ def _write_split(out: Path, split: str, mesh, cameras, fov_x: float, spp: int, s
     frames = []
     it = cameras
     if progress:
-        from tqdm import tqdm
+        from trisplat.progress import progress_bar
 
-        it = tqdm(cameras, desc=f"rendering {split}", unit="view")
+        it = progress_bar(cameras, desc=f"rendering {split}", unit="view")
     for i, cam in enumerate(it):
         view = raycast_view(mesh, cam, None, spp, jitter=False, shading=shading, seed=seed + i, intersector=isect)
         _write_png(out / split / f"r_{i}.png", view.rgba)

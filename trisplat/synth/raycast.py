@@ -174,9 +174,9 @@ def render_views(
     isect = _intersector(mesh)
     it = cameras
     if progress:
-        from tqdm import tqdm
+        from trisplat.progress import progress_bar
 
-        it = tqdm(cameras, desc="ray-casting views", unit="view")
+        it = progress_bar(cameras, desc="ray-casting views", unit="view")
     return [
         raycast_view(mesh, cam, background, samples_per_pixel, jitter, shading, seed + i, isect).rgba
         for i, cam in enumerate(it)

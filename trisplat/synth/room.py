@@ -144,9 +144,9 @@ def write_room_scene(out_dir: str | Path, n_views: int = 48, width: int = 160, h
     isect = _intersector(mesh)
     it = cams
     if progress:
-        from tqdm import tqdm
+        from trisplat.progress import progress_bar
 
-        it = tqdm(cams, desc="rendering room", unit="view")
+        it = progress_bar(cams, desc="rendering room", unit="view")
     from PIL import Image
 
     for i, cam in enumerate(it):

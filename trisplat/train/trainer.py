@@ -10,11 +10,11 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from trisplat import run as layout
 from trisplat.data.types import SceneData
 from trisplat.io.atomic import atomic_write_text
+from trisplat.progress import progress_bar
 from trisplat.render import rasterize
 from trisplat.scene.model import TriangleScene
 from trisplat.scene.sh import num_sh_bases
@@ -521,7 +521,7 @@ class Trainer:
         # a --minutes run re-plans its step count as it goes: its bar shows progress through the schedule in percent
         # (continuous across re-plans, so it never jumps back), with step / planned steps beside it
         by_percent = bool(cfg.minutes)
-        bar = tqdm(total=100.0 if by_percent else self.clock.total, disable=not self.show_progress,
+        bar = progress_bar(total=100.0 if by_percent else self.clock.total, disable=not self.show_progress,
                    unit="%" if by_percent else "step", dynamic_ncols=True, desc="train",
                    bar_format="{l_bar}{bar}| {n:.1f}/100% [{elapsed}<{remaining}{postfix}]" if by_percent else None)
         if self.show_progress and by_percent:
