@@ -27,14 +27,35 @@ MAX_VOXELS_PER_SIDE = 400  # the uniform TSDF grid is at most this many voxels p
 
 MISSING_OPEN3D = ("the Open3D baseline needs open3d: pip install open3d-cpu==0.20.0 (or pip install -e '.[bench]'; "
                   "a benchmark-only dependency)")
+# system libraries the open3d wheels load but do not ship, and the Debian / Ubuntu package that installs each (Open3D's
+# docs list libegl1, libgl1, libgomp1; a fresh Debian machine also lacks libusb-1.0-0)
+SYSTEM_LIBRARIES = {"libusb-1.0": "libusb-1.0-0", "libGL.so": "libgl1", "libgomp": "libgomp1", "libEGL": "libegl1"}
+
+
+def open3d_load_error(exc: BaseException) -> str:
+    """What to do when open3d is installed but fails to import: a shared library it needs is missing (the message
+    names the library; for the known ones also the system package, e.g. `sudo apt install libusb-1.0-0`)."""
+    text = str(exc)
+    for lib, package in SYSTEM_LIBRARIES.items():
+        if lib.lower() in text.lower():
+            return (f"open3d is installed but cannot load: {text}. It needs the system library {lib}, which its wheel "
+                    f"does not ship: sudo apt install {package} (Debian / Ubuntu)")
+    return (f"open3d is installed but cannot load: {text} (a system library missing? the message names it; "
+            f"or reinstall: pip install --force-reinstall open3d-cpu==0.20.0)")
 
 
 def _o3d():
-    """The open3d module, imported lazily; ImportError naming `pip install open3d-cpu` when it is not installed."""
+    """The open3d module, imported lazily. ImportError naming `pip install open3d-cpu` when it is not installed,
+    and the missing system library and its package when it is installed but cannot load (libusb on a fresh
+    Debian machine: ImportError or OSError from the loader)."""
     try:
         import open3d as o3d
-    except ImportError:
+    except ModuleNotFoundError as exc:
+        if exc.name not in (None, "open3d"):  # open3d itself is there; something it imports is not
+            raise ImportError(open3d_load_error(exc)) from None
         raise ImportError(MISSING_OPEN3D) from None
+    except (ImportError, OSError) as exc:
+        raise ImportError(open3d_load_error(exc)) from None
     return o3d
 
 
