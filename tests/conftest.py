@@ -49,3 +49,12 @@ def synthetic_capture(synthetic_frames, tmp_path_factory):
     out = tmp_path_factory.mktemp("sfm_capture") / "capture"
     report = run_poses(synthetic_frames[0], out, progress=False, log=lambda m: None)
     return report, out
+
+
+# Fixture of the SLAM tests (tests/slam): one RGB-D sequence ray-cast from a known mesh along a known path, made once.
+@pytest.fixture(scope="session")
+def rgbd_capture(tmp_path_factory):
+    """Folder of a 14-frame 160x120 RGB-D sequence in the 7-Scenes layout (tests/slam/rgbd_scene.py)."""
+    from tests.slam.rgbd_scene import write_rgbd_sequence
+
+    return write_rgbd_sequence(tmp_path_factory.mktemp("synth_rgbd"))

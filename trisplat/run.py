@@ -12,6 +12,9 @@ RUN/
                        turned Y-up, as glTF defines)
   metrics.json         final metrics
   renders/             a few test renders (hard mode)
+
+`trisplat slam` writes the same config.json, state.json ("step": frames done), model.ply, mesh.ply and metrics.json,
+plus trajectory.txt and checkpoint.pt (trisplat.slam.system), under the same rules (prepare_run_dir, move_aside).
 """
 from __future__ import annotations
 

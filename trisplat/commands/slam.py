@@ -21,11 +21,14 @@ class SlamArgs:
     capture: tyro.conf.Positional[Path]
     """RGB-D capture folder: TUM (rgb.txt + depth.txt), 7-Scenes/3DMatch (frame-NNNNNN.color/.depth), Redwood"""
     out: Path
-    """run directory"""
+    """run directory (created; an existing run is never overwritten without --force)"""
     depth_scale: Annotated[float | None, NO_DEFAULT_HINT] = None
     """metres per raw depth unit (default per format: TUM 1/5000, 7-Scenes and Redwood 1/1000)"""
     resume: bool = False
-    """continue from RUN/checkpoint.pt"""
+    """continue from RUN/checkpoint.pt; --slam.stride, --slam.downscale, --depth-scale and the capture are refused if
+    they differ from the saved run's (they number its frames); --slam.max-frames may grow"""
+    force: bool = False
+    """start over in a directory that holds a run (the old run is moved aside, never deleted)"""
     slam: SlamConfig = field(default_factory=SlamConfig)
 
 
@@ -34,13 +37,15 @@ def main(argv: list[str]) -> int:
     import torch
 
     from trisplat.data.rgbd_stream import open_stream
-    from trisplat.slam.system import run_slam
+    from trisplat.run import prepare_run_dir
+    from trisplat.slam.system import CHECKPOINT, run_slam
 
+    prepare_run_dir(args.out, args.resume, args.force, checkpoint=CHECKPOINT)  # before reading the capture
     torch.set_num_threads(max(1, torch.get_num_threads()))
     stream = open_stream(args.capture, depth_scale=args.depth_scale)
     print(f"{stream.format} stream: {len(stream)} frames {stream.width}x{stream.height}, processing at "
           f"1/{args.slam.downscale}; reference poses: {'yes' if stream.has_reference else 'no'}", flush=True)
     for w in stream.warnings:
         print(f"warning: {w}", flush=True)
-    run_slam(stream, args.out, args.slam, resume=args.resume)
+    run_slam(stream, args.out, args.slam, resume=args.resume, force=args.force)
     return 0

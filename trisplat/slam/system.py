@@ -12,6 +12,7 @@ import numpy as np
 import torch
 
 from trisplat.io.atomic import atomic_write_text
+from trisplat.run import move_aside, prepare_run_dir
 from trisplat.data.rgbd_stream import RGBDStream, _box_down, downscale_depth, load_frame
 from trisplat.slam.map import PruneConfig, SlamMap, SpawnConfig, prune, spawn
 from trisplat.slam.mapping import Keyframe, MapConfig, refine
@@ -24,6 +25,7 @@ MODEL = "model.ply"
 MESH = "mesh.ply"
 METRICS = "metrics.json"
 CONFIG = "config.json"
+STATE = "state.json"  # {"finished", "step" (frames done), "total_steps", "refined"}, as a training run's
 
 
 @dataclass
@@ -50,6 +52,15 @@ class SlamConfig:
     """... or rotated more than this (degrees) ..."""
     keyframe_coverage: float = 0.85
     """... or when fewer than this fraction of the valid-depth pixels were covered while tracking"""
+    lost_coverage: float = 0.3
+    """a tracked frame is lost when fewer than this fraction of its valid-depth pixels are covered by the map at the
+    tracked pose within --slam.track.outlier-depth of the observed depth (unitless) ..."""
+    lost_residual: float = 0.05
+    """... or when the mean depth residual of those pixels is above this (metres). A lost frame is tracked again
+    from the last tracked pose and from the last keyframe's (relocalise_iters x the iterations); when that fails too
+    it is skipped: no keyframe, no map from it, its pose not used for the next guess"""
+    relocalise_iters: int = 3
+    """iteration cap of a re-localisation, as a multiple of --slam.track.max-iters (count)"""
     checkpoint_every: int = 50
     """frames between checkpoints (count; 0 = none)"""
     eval_every: int = 10
@@ -79,6 +90,13 @@ class SlamState:
     track_loss: list[float] = field(default_factory=list)
     track_iters: list[int] = field(default_factory=list)
     elapsed_s: float = 0.0
+    lost: list[int] = field(default_factory=list)
+    """frame numbers (in the run's sequence) whose tracking failed even after re-localisation: skipped"""
+    refined: bool = False
+    """the final refinement is done (a resumed run goes straight to the outputs)"""
+    final_s: float = 0.0
+    rng_state: str = ""
+    """the run's numpy generator state (JSON), so a resumed run draws what the uninterrupted one would"""
 
 
 def _pyramid(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, levels) -> list:
@@ -101,6 +119,8 @@ def save_checkpoint(path: Path, state: SlamState, frames_done: int) -> None:
         "c2w": torch.as_tensor(np.array(state.c2w).reshape(-1, 4, 4), dtype=torch.float64),
         "keyframe_ids": [int(k) for k in state.keyframe_ids], "track_loss": [float(v) for v in state.track_loss],
         "track_iters": [int(v) for v in state.track_iters], "elapsed_s": float(state.elapsed_s),
+        "lost": [int(v) for v in state.lost], "refined": bool(state.refined), "final_s": float(state.final_s),
+        "rng_state": state.rng_state,
     }
     from trisplat.train.checkpoint import atomic_torch_save
 
@@ -116,7 +136,8 @@ def load_checkpoint(path: Path) -> tuple[SlamState, int]:
         raise ValueError(f"{path}: unreadable SLAM checkpoint ({exc})") from None
     sc = TriangleScene(b["positions"], b["sh"], b["opacity_logit"], b["faces"])
     st = SlamState(SlamMap(sc, b["spawn_edge"], b["birth"]), [m for m in b["c2w"].numpy()], list(b["keyframe_ids"]),
-                   list(b["track_loss"]), list(b["track_iters"]), float(b["elapsed_s"]))
+                   list(b["track_loss"]), list(b["track_iters"]), float(b["elapsed_s"]), list(b.get("lost", [])),
+                   bool(b.get("refined", False)), float(b.get("final_s", 0.0)), str(b.get("rng_state", "")))
     return st, int(b["frames_done"])
 
 
@@ -124,29 +145,130 @@ def _fmt_s(s: float) -> str:
     return f"{int(s // 60)}m{int(s % 60):02d}s"
 
 
-def run_slam(stream: RGBDStream, out: Path, cfg: SlamConfig, resume: bool = False, log=print) -> dict:
-    """Run SLAM over the stream, writing RUN outputs; returns the metrics dict (also RUN/metrics.json)."""
+# settings that number the frames and keyframes or change what a frame holds: a resumed run keeps the saved ones
+RESUME_FIXED = {"capture": "CAPTURE", "format": "CAPTURE", "depth_scale": "--depth-scale",
+                "stride": "--slam.stride", "downscale": "--slam.downscale"}
+
+
+def check_resume(out: Path, saved: dict, given: dict, frames_done: int, frames: int) -> None:
+    """Refuse a resume whose settings would re-index the run's frames and keyframes (RESUME_FIXED) or end it before
+    the frames already done, naming the option. Other settings may change: they apply to the frames still to do."""
+    def same(k):
+        a, b = saved.get(k), given.get(k)
+        if k == "capture":
+            return a is None or Path(a).resolve() == Path(b).resolve()
+        if isinstance(a, float) or isinstance(b, float):
+            return a is None or b is None or abs(float(a) - float(b)) <= 1e-12 * max(abs(float(a)), 1e-300)
+        return a is None or a == b
+    changed = [k for k in RESUME_FIXED if not same(k)]
+    if changed:
+        what = ", ".join(f"{RESUME_FIXED[k]} ({k}: saved {saved.get(k)!r}, given {given.get(k)!r})" for k in changed)
+        raise ValueError(f"{out}: --resume continues the saved run and cannot change {what}: the checkpoint's frames "
+                         "and keyframes are numbered by it. Give the saved value, or start a new run with --force.")
+    if frames < frames_done:
+        raise ValueError(f"{out}: --resume with --slam.max-frames {given.get('max_frames')} ends the run at {frames} "
+                         f"frames, but {frames_done} are already done; give a larger --slam.max-frames (or 0: all)")
+
+
+def motion_guess(c2w: list[np.ndarray], lost: set[int]) -> np.ndarray:
+    """world_to_camera guess of the next frame: constant velocity from the last two frames (w2c_n = w2c_{n-1} dT),
+    or the last tracked pose (zero velocity) when there is only one, or one of the two was lost."""
+    n = len(c2w)
+    good = [k for k in range(n) if k not in lost]
+    prev = np.linalg.inv(c2w[good[-1]])
+    if len(good) < 2 or good[-1] != n - 1 or good[-2] != n - 2:
+        return prev
+    return prev @ c2w[-2] @ prev
+
+
+def _track_ok(r, cfg: SlamConfig) -> bool:
+    return r.coverage >= cfg.lost_coverage and r.residual <= cfg.lost_residual
+
+
+def _describe(r) -> str:
+    return (f"{r.coverage:.0%} of the valid depth covered, depth residual {r.residual * 100:.1f} cm, "
+            f"{'converged' if r.converged else 'not converged'} in {r.iterations} iterations")
+
+
+def track_with_relocalisation(state: SlamState, pyr, cfg: SlamConfig, n: int, label: str, log):
+    """Track frame n from the motion guess; when the result is lost (too little of the valid depth covered, or the
+    depth residual too high), track again from the last tracked pose and from the last keyframe's pose with
+    relocalise_iters x the iterations and keep the best that is not lost. Returns (TrackResult, lost: bool)."""
+    import dataclasses
+
+    sm = state.smap
+    lost = set(state.lost)
+    args = (sm.scene.positions, sm.scene.faces, sm.colors(), sm.scene.opacities(), cfg.sigma, pyr)
+    r = track_frame(*args, motion_guess(state.c2w, lost), cfg.track)
+    if _track_ok(r, cfg):
+        return r, False
+    log(f"{label}: tracking lost ({_describe(r)}); re-localising from the last tracked pose and the last "
+        "keyframe's", flush=True)
+    more = dataclasses.replace(cfg.track, max_iters=tuple(int(i) * max(1, cfg.relocalise_iters)
+                                                         for i in cfg.track.max_iters))
+    last_good = max(k for k in range(len(state.c2w)) if k not in lost)
+    starts = [last_good] + ([state.keyframe_ids[-1]] if state.keyframe_ids[-1] != last_good else [])
+    tries = [r] + [track_frame(*args, np.linalg.inv(state.c2w[k]), more) for k in starts]
+    ok = [t for t in tries[1:] if _track_ok(t, cfg)]
+    if ok:
+        best = min(ok, key=lambda t: t.loss)
+        log(f"{label}: re-localised ({_describe(best)})", flush=True)
+        return best, False
+    best = max(tries, key=lambda t: (t.coverage, -t.loss))
+    log(f"{label}: re-localisation failed ({_describe(best)}); frame skipped: no map is made from it and its pose "
+        "in the trajectory is the best attempt's", flush=True)
+    return best, True
+
+
+def run_slam(stream: RGBDStream, out: Path, cfg: SlamConfig, resume: bool = False, log=print,
+             force: bool = False) -> dict:
+    """Run SLAM over the stream, writing RUN outputs; returns the metrics dict (also RUN/metrics.json).
+
+    The run rules of `trisplat train` (trisplat.run): a non-empty `out` is refused unless `force` (it is then moved
+    aside, never deleted) or `resume`; a resume keeps the settings that number the frames (RESUME_FIXED); config,
+    state, checkpoint and metrics are written atomically."""
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    torch.manual_seed(cfg.seed)
-    rng = np.random.default_rng(cfg.seed)
+    prepare_run_dir(out, resume, force, checkpoint=CHECKPOINT)
     D = cfg.downscale
     K = stream.K_at(D)
-    W, H = stream.size_at(D)
     ids = list(range(0, len(stream), cfg.stride))
     if cfg.max_frames:
         ids = ids[: cfg.max_frames]
-    (out / CONFIG).write_text(json.dumps({"capture": str(stream.root), "format": stream.format, **asdict(cfg)},
-                                         indent=2))
+    record = {"capture": str(Path(stream.root).resolve()), "format": stream.format,
+              "depth_scale": float(stream.depth_scale), **asdict(cfg)}
     ckpt = out / CHECKPOINT
-    start = 0
+    start, state = 0, None
     if resume and ckpt.is_file():
         state, start = load_checkpoint(ckpt)
+    if resume and (out / CONFIG).is_file():
+        try:
+            saved = json.loads((out / CONFIG).read_text())
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"{out / CONFIG}: malformed JSON ({exc})") from None
+        check_resume(out, saved, record, start, len(ids))
+    if force and not resume:
+        move_aside(out)
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out / CONFIG, json.dumps(record, indent=2))
+    torch.manual_seed(cfg.seed)
+    rng = np.random.default_rng(cfg.seed)
+    if state is not None:
+        if state.rng_state:
+            rng.bit_generator.state = json.loads(state.rng_state)
         log(f"resumed from {ckpt}: {start} frames done, {state.smap.num_faces} triangles")
     else:
         if resume:
             log(f"no checkpoint at {ckpt}: starting from the first frame")
         state = SlamState(SlamMap.empty())
+    if start < len(ids):
+        state.refined = False  # more frames: the refinement runs again at the end
+
+    def checkpoint(done: int) -> None:
+        state.rng_state = json.dumps(rng.bit_generator.state)
+        save_checkpoint(ckpt, state, done)
+        atomic_write_text(out / STATE, json.dumps({"finished": False, "step": done, "total_steps": len(ids),
+                                                   "refined": state.refined}))
+
     keyframes: list[Keyframe] = []
     for k in state.keyframe_ids:  # reload keyframe observations of a resumed run
         rgb, depth = load_frame(stream, ids[k], D)
@@ -155,22 +277,22 @@ def run_slam(stream: RGBDStream, out: Path, cfg: SlamConfig, resume: bool = Fals
     t_session = time.time()
     for n in range(start, len(ids)):
         rgb, depth = load_frame(stream, ids[n], D)
+        lost = False
         if n == 0:
             c2w = np.eye(4)
             res_loss, res_it, coverage = 0.0, 0, 0.0
         else:
-            prev = np.linalg.inv(state.c2w[-1])
-            guess = prev if n < 2 else prev @ state.c2w[-2] @ prev  # constant velocity: w2c_n = w2c_{n-1} dT
-            sm = state.smap
-            r = track_frame(sm.scene.positions, sm.scene.faces, sm.colors(), sm.scene.opacities(), cfg.sigma,
-                            _pyramid(rgb, depth, K, cfg.track.levels), guess, cfg.track)
+            r, lost = track_with_relocalisation(state, _pyramid(rgb, depth, K, cfg.track.levels), cfg, n,
+                                                f"frame {n + 1}/{len(ids)} (capture frame {ids[n]})", log)
             c2w = np.linalg.inv(r.w2c)
             res_loss, res_it, coverage = r.loss, r.iterations, r.coverage
         state.c2w.append(c2w)
         state.track_loss.append(res_loss)
         state.track_iters.append(res_it)
+        if lost:
+            state.lost.append(n)
         is_kf = n == 0
-        if not is_kf:
+        if not is_kf and not lost:
             last = state.c2w[state.keyframe_ids[-1]]
             rel = np.linalg.inv(last) @ c2w
             is_kf = (n - state.keyframe_ids[-1] >= cfg.keyframe_every
@@ -190,21 +312,29 @@ def run_slam(stream: RGBDStream, out: Path, cfg: SlamConfig, resume: bool = Fals
             rate = (done - start) / max(time.time() - t_session, 1e-9)
             log(f"frame {done}/{len(ids)}  {rate:.2f} fps  triangles {state.smap.num_faces}  "
                 f"track loss {res_loss:.4f} ({res_it} it)  keyframes {len(keyframes)}  "
-                f"elapsed {_fmt_s(state.elapsed_s)}  eta {_fmt_s((len(ids) - done) / max(rate, 1e-9))}", flush=True)
+                + (f"lost {len(state.lost)}  " if state.lost else "")
+                + f"elapsed {_fmt_s(state.elapsed_s)}  eta {_fmt_s((len(ids) - done) / max(rate, 1e-9))}", flush=True)
         if cfg.checkpoint_every and done % cfg.checkpoint_every == 0 and done < len(ids):
-            save_checkpoint(ckpt, state, done)
+            checkpoint(done)
     slam_s = state.elapsed_s
     # Soft to hard: refine over every keyframe while the window sharpens to sigma_end.
-    tf = time.time()
-    if cfg.final_iters:
-        log(f"final refinement: {cfg.final_iters} iterations over {len(keyframes)} keyframes, "
-            f"sigma {cfg.sigma} -> {cfg.sigma_end}", flush=True)
-        refine(state.smap, keyframes, K, cfg.sigma, cfg.final_iters, cfg.mapping, rng, sigma_end=cfg.sigma_end,
-               window=0)
-        prune(state.smap, cfg.prune)
-    final_s = time.time() - tf
-    save_checkpoint(ckpt, state, len(ids))
-    return write_outputs(stream, out, cfg, state, ids, keyframes, slam_s, final_s, log)
+    if state.refined:
+        log(f"final refinement: already done ({ckpt}); writing the outputs", flush=True)
+    else:
+        tf = time.time()
+        if cfg.final_iters:
+            log(f"final refinement: {cfg.final_iters} iterations over {len(keyframes)} keyframes, "
+                f"sigma {cfg.sigma} -> {cfg.sigma_end}", flush=True)
+            refine(state.smap, keyframes, K, cfg.sigma, cfg.final_iters, cfg.mapping, rng, sigma_end=cfg.sigma_end,
+                   window=0)
+            prune(state.smap, cfg.prune)
+        state.final_s = time.time() - tf
+        state.refined = True
+        checkpoint(len(ids))  # before the outputs: a failure there resumes straight to them, not to a second refinement
+    metrics = write_outputs(stream, out, cfg, state, ids, keyframes, slam_s, state.final_s, log)
+    atomic_write_text(out / STATE, json.dumps({"finished": True, "step": len(ids), "total_steps": len(ids),
+                                               "refined": True}))
+    return metrics
 
 
 def evaluate_frames(stream: RGBDStream, smap: SlamMap, c2ws, ids, frame_numbers, cfg: SlamConfig) -> dict:
@@ -294,7 +424,7 @@ def write_outputs(stream, out: Path, cfg: SlamConfig, state: SlamState, ids, key
         "resolution": list(stream.size_at(cfg.downscale)), "keyframes": len(state.keyframe_ids),
         "triangles": state.smap.num_faces, "slam_seconds": slam_s, "final_refine_seconds": final_s,
         "fps": len(ids) / max(slam_s, 1e-9), "mean_track_iterations": float(np.mean(state.track_iters[1:] or [0])),
-        "mesh": mesh_info,
+        "lost_frames": [int(n) for n in state.lost], "mesh": mesh_info,
         "held_out": evaluate_frames(stream, state.smap, state.c2w, ids, held, cfg),
     }
     ref = [stream.frames[i].reference_c2w for i in ids]

@@ -61,6 +61,8 @@ class TrackResult:
     converged: bool
     coverage: float
     """fraction of valid-depth pixels that were well covered at the finest level"""
+    residual: float = 0.0
+    """mean |rendered - observed| depth (metres) over those pixels at the finest level"""
 
 
 def pose_loss(pos_cam: torch.Tensor, faces, colors, opacities, sigma: float, rgb: torch.Tensor, depth: torch.Tensor,
@@ -95,22 +97,22 @@ def _evaluate(pc0, xi, faces, colors, opacities, sigma, rgb, depth, K, cfg, li):
 
 
 def _level_adam(pc0, faces, colors, opacities, sigma, rgb, depth, K, cfg: TrackConfig, li: int):
-    """Adam on the se(3) increment; returns (best xi, its loss, coverage, iterations, converged)."""
+    """Adam on the se(3) increment; returns (best xi, its loss, coverage, depth residual, iterations, converged)."""
     decay = cfg.lr_level_decay**li
     v = torch.zeros(3, dtype=torch.float64, requires_grad=True)
     w = torch.zeros(3, dtype=torch.float64, requires_grad=True)
     opt = torch.optim.Adam([{"params": [v], "lr": cfg.lr_translation * decay},
                             {"params": [w], "lr": cfg.lr_rotation * decay}])
     hist: list[float] = []
-    best = (float("inf"), torch.zeros(6, dtype=torch.float64), 0.0)
+    best = (float("inf"), torch.zeros(6, dtype=torch.float64), 0.0, 0.0)
     its, converged = 0, False
     for _ in range(cfg.max_iters[li]):
         xi = torch.cat([v, w])
-        loss, cov, _ = _evaluate(pc0, xi, faces, colors, opacities, sigma, rgb, depth, K, cfg, li)
+        loss, cov, dres = _evaluate(pc0, xi, faces, colors, opacities, sigma, rgb, depth, K, cfg, li)
         lv = float(loss.detach())
         its += 1
         if lv < best[0]:
-            best = (lv, xi.detach().clone(), cov)
+            best = (lv, xi.detach().clone(), cov, dres)
         hist.append(lv)
         if cov == 0.0:
             break
@@ -126,7 +128,7 @@ def _level_adam(pc0, faces, colors, opacities, sigma, rgb, depth, K, cfg: TrackC
         ):
             converged = True
             break
-    return best[1], best[0], best[2], its, converged
+    return best[1], best[0], best[2], best[3], its, converged
 
 
 def point_to_plane_metric(depth: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
@@ -151,14 +153,14 @@ def _level_gn(pc0, faces, colors, opacities, sigma, rgb, depth, K, cfg: TrackCon
     """Preconditioned descent: direction -M^-1 g (g the exact autograd gradient, M the point-to-plane Gauss-Newton
     metric scaled by the mean depth residual, as iteratively reweighted least squares does for an L1 loss) with a
     backtracking line search; converged when a step no longer lowers the loss by the fraction tol or moves the
-    pose by less than min_step. Returns (xi, loss, coverage, iterations, converged)."""
+    pose by less than min_step. Returns (xi, loss, coverage, depth residual, iterations, converged)."""
     M = point_to_plane_metric(depth, K)
     M = M + cfg.damping * torch.trace(M) / 6 * torch.eye(6, dtype=torch.float64)
     xi = torch.zeros(6, dtype=torch.float64, requires_grad=True)
     loss, cov, dres = _evaluate(pc0, xi, faces, colors, opacities, sigma, rgb, depth, K, cfg, li)
     its, converged, alpha = 1, False, 1.0
     if cov == 0.0:
-        return xi.detach(), float(loss.detach()), cov, its, False
+        return xi.detach(), float(loss.detach()), cov, dres, its, False
     lv = float(loss.detach())
     for _ in range(cfg.max_iters[li]):
         (g,) = torch.autograd.grad(loss, xi)
@@ -183,7 +185,7 @@ def _level_gn(pc0, faces, colors, opacities, sigma, rgb, depth, K, cfg: TrackCon
         if gain < cfg.tol * lv or step < cfg.min_step:
             converged = True
             break
-    return xi.detach(), lv, cov, its, converged
+    return xi.detach(), lv, cov, dres, its, converged
 
 
 def track_frame(positions: torch.Tensor, faces: torch.Tensor, colors: torch.Tensor, opacities: torch.Tensor,
@@ -194,13 +196,13 @@ def track_frame(positions: torch.Tensor, faces: torch.Tensor, colors: torch.Tens
     pos = positions.detach().double()
     faces, colors, opacities = faces.detach(), colors.detach(), opacities.detach()
     w2c = torch.as_tensor(w2c_init, dtype=torch.float64).clone()
-    total, converged_all, loss_v, coverage = 0, True, float("nan"), 0.0
+    total, converged_all, loss_v, coverage, residual = 0, True, float("nan"), 0.0, 0.0
     for li, (rgb, depth, K) in enumerate(pyramid):
         pc0 = pos @ w2c[:3, :3].T + w2c[:3, 3]
         level = _level_gn if cfg.optimizer == "gn" else _level_adam
-        xi, lv, cov, its, converged = level(pc0, faces, colors, opacities, sigma, rgb, depth, K, cfg, li)
+        xi, lv, cov, dres, its, converged = level(pc0, faces, colors, opacities, sigma, rgb, depth, K, cfg, li)
         total += its
         converged_all &= converged
         w2c = exp_se3(xi) @ w2c
-        loss_v, coverage = lv, cov
-    return TrackResult(w2c.numpy(), loss_v, total, converged_all, coverage)
+        loss_v, coverage, residual = lv, cov, dres
+    return TrackResult(w2c.numpy(), loss_v, total, converged_all, coverage, residual)

@@ -1,0 +1,45 @@
+"""A small RGB-D sequence ray-cast from a known mesh along a known path (trisplat.synth), written in the 7-Scenes
+layout (frame-NNNNNN.color.png / .depth.png in millimetres / .pose.txt, camera-intrinsics.txt): the capture of the
+SLAM tests (the `rgbd_capture` fixture in tests/conftest.py)."""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from trisplat.cameras import Camera
+from trisplat.synth.orbit import intrinsics, look_at
+from trisplat.synth.raycast import raycast_view
+from trisplat.synth.scenes import demo_mesh
+
+W, H, N = 160, 120, 14
+FOV_DEG = 60.0
+
+
+def path_w2c(n: int = N) -> list[np.ndarray]:
+    """World-to-camera matrices along an arc (6 degrees) that also rises and approaches, looking at the scene."""
+    out = []
+    for k in range(n):
+        s = k / (n - 1)
+        th = math.radians(-30 + 6 * s)
+        r = 2.3 - 0.1 * s
+        out.append(look_at((r * math.cos(th), r * math.sin(th), 1.1 + 0.1 * s), (0.0, 0.0, 0.25)))
+    return out
+
+
+def write_rgbd_sequence(root: Path, width: int = W, height: int = H, n: int = N) -> Path:
+    """Ray-cast `n` frames of demo_mesh(seed=0) along path_w2c into `root` (7-Scenes layout); returns `root`."""
+    root.mkdir(parents=True, exist_ok=True)
+    mesh = demo_mesh(seed=0)
+    K = intrinsics(width, height, FOV_DEG)
+    for k, w2c in enumerate(path_w2c(n)):
+        v = raycast_view(mesh, Camera(w2c, K, width, height), background=(1.0, 1.0, 1.0))
+        Image.fromarray((v.rgba[..., :3] * 255 + 0.5).astype(np.uint8)).save(root / f"frame-{k:06d}.color.png")
+        Image.fromarray(np.round(v.depth * 1000).astype(np.uint16)).save(root / f"frame-{k:06d}.depth.png")
+        np.savetxt(root / f"frame-{k:06d}.pose.txt", np.linalg.inv(w2c))
+    Kint = K.copy()
+    Kint[:2, 2] -= 0.5  # the file is integer-centred (OpenCV), as 7-Scenes'
+    np.savetxt(root / "camera-intrinsics.txt", Kint)
+    return root
