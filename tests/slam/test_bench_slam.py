@@ -1,62 +1,33 @@
-"""`trisplat bench slam` on a tiny sequence ray-cast from a known mesh (as tests/slam/test_synthetic_slam.py, in the
-7-Scenes layout, 10 frames at 80x60): the table has both methods' ATE and the Chamfer columns; without open3d the
-suite stops at once with an error naming `pip install open3d-cpu`."""
+"""`trisplat bench slam` on the SLAM tests' sequence ray-cast from a known mesh (the `rgbd_capture` fixture,
+tests/slam/rgbd_scene.py; its first 10 frames at 1/2: 80x60): the table has both methods' ATE and the Chamfer
+columns; without open3d the suite stops at once with an error naming `pip install open3d-cpu`."""
 from __future__ import annotations
 
 import json
-import math
 import re
 import sys
 
 import numpy as np
 import pytest
-from PIL import Image
 
-from trisplat.cameras import Camera
-from trisplat.synth.orbit import intrinsics, look_at
-from trisplat.synth.raycast import raycast_view
-from trisplat.synth.scenes import demo_mesh
+from tests.slam.rgbd_scene import H as FULL_H
+from tests.slam.rgbd_scene import W as FULL_W
+from tests.slam.rgbd_scene import path_w2c
 
-W, H, N = 80, 60, 10
+DOWNSCALE, N = 2, 10
+W, H = FULL_W // DOWNSCALE, FULL_H // DOWNSCALE
 # tiny trisplat slam settings (passed through after `--`): two pyramid levels, a short final refinement
 SLAM_EXTRA = ["--", "--slam.final-iters", "5", "--slam.checkpoint-every", "0", "--slam.eval-every", "2",
               "--slam.track.levels", "2", "1", "--slam.track.max-iters", "40", "30"]
 
 
-def _path(n: int) -> list[np.ndarray]:
-    """World-to-camera matrices along a short arc that rises and approaches, looking at the scene."""
-    out = []
-    for k in range(n):
-        s = k / (n - 1)
-        th = math.radians(-30 + 5 * s)
-        r = 2.3 - 0.08 * s
-        out.append(look_at((r * math.cos(th), r * math.sin(th), 1.1 + 0.08 * s), (0.0, 0.0, 0.25)))
-    return out
-
-
-@pytest.fixture(scope="module")
-def tiny_capture(tmp_path_factory):
-    root = tmp_path_factory.mktemp("bench_slam_rgbd")
-    mesh = demo_mesh(seed=0)
-    K = intrinsics(W, H, 60.0)
-    for k, w2c in enumerate(_path(N)):
-        v = raycast_view(mesh, Camera(w2c, K, W, H), background=(1.0, 1.0, 1.0))
-        Image.fromarray((v.rgba[..., :3] * 255 + 0.5).astype(np.uint8)).save(root / f"frame-{k:06d}.color.png")
-        Image.fromarray(np.round(v.depth * 1000).astype(np.uint16)).save(root / f"frame-{k:06d}.depth.png")
-        np.savetxt(root / f"frame-{k:06d}.pose.txt", np.linalg.inv(w2c))
-    Kint = K.copy()
-    Kint[:2, 2] -= 0.5  # integer-centred in the file (OpenCV), as 7-Scenes'
-    np.savetxt(root / "camera-intrinsics.txt", Kint)
-    return root
-
-
-def test_bench_slam_reports_both_methods(tiny_capture, tmp_path):
+def test_bench_slam_reports_both_methods(rgbd_capture, tmp_path):
     pytest.importorskip("open3d", reason="the SLAM benchmark's baseline needs open3d: pip install open3d-cpu")
     from trisplat.bench.slam import COLUMNS, main
 
     out = tmp_path / "bench"
-    rc = main(["--capture", str(tiny_capture), "--out", str(out), "--downscale", "1", "--chamfer-samples", "4000",
-               "--tsdf-voxel", "0.02",
+    rc = main(["--capture", str(rgbd_capture), "--out", str(out), "--downscale", str(DOWNSCALE), "--max-frames",
+               str(N), "--chamfer-samples", "4000", "--tsdf-voxel", "0.02",
                *SLAM_EXTRA])
     assert rc == 0
     data = json.loads((out / "slam.json").read_text())
@@ -80,29 +51,30 @@ def test_bench_slam_reports_both_methods(tiny_capture, tmp_path):
     assert (out / "slam_trisplat" / "trajectory.txt").is_file() and (out / "slam_open3d" / "mesh.ply").is_file()
 
 
-def test_bench_slam_without_open3d_names_the_package(tiny_capture, tmp_path, monkeypatch, capsys):
+def test_bench_slam_without_open3d_names_the_package(rgbd_capture, tmp_path, monkeypatch, capsys):
     monkeypatch.setitem(sys.modules, "open3d", None)  # `import open3d` raises ImportError
     from trisplat.bench.slam import main
     from trisplat.slam import open3d_baseline
 
-    rc = main(["--capture", str(tiny_capture), "--out", str(tmp_path / "bench")])
+    rc = main(["--capture", str(rgbd_capture), "--out", str(tmp_path / "bench")])
     assert rc == 2
     assert "pip install open3d-cpu" in capsys.readouterr().err
     assert not (tmp_path / "bench" / "slam_trisplat").exists()  # stopped before the (long) trisplat run
     with pytest.raises(ImportError, match="pip install open3d-cpu"):
-        open3d_baseline.run(tiny_capture, tmp_path / "o3d")
+        open3d_baseline.run(rgbd_capture, tmp_path / "o3d")
 
 
 def test_pose_alignment_recovers_a_rigid_motion():
+    """The whole-pose alignment the benchmark moves meshes with (trisplat.sfm.align.align_poses)."""
     from scipy.spatial.transform import Rotation
 
-    from trisplat.bench.slam import pose_alignment
+    from trisplat.sfm.align import align_poses
 
-    est = np.array([np.linalg.inv(w2c) for w2c in _path(5)])  # a short, nearly straight path
+    est = np.array([np.linalg.inv(w2c) for w2c in path_w2c()[:5]])  # a short, nearly straight path
     G = np.eye(4)
     G[:3, :3] = Rotation.from_rotvec([0.3, -1.2, 0.5]).as_matrix()
     G[:3, 3] = [1.0, -2.0, 0.5]
-    R, t = pose_alignment(est, G @ est)
+    R, t = align_poses(est, G @ est)
     assert np.allclose(R, G[:3, :3], atol=1e-9) and np.allclose(t, G[:3, 3], atol=1e-9)
 
 

@@ -76,21 +76,12 @@ def _split(argv: list[str]) -> tuple[list[str], list[str]]:
     return argv, []
 
 
-def pose_alignment(est_c2w: np.ndarray, ref_c2w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rigid (R [3,3], t [3]) taking the estimate's world into the reference's, from whole poses: R the rotation
-    nearest (chordal L2) to sum_i R_ref_i R_est_i^T, t the mean of c_ref_i - R c_est_i. Unlike the centre-only ATE
-    alignment it is well determined on short, nearly straight paths (where a rotation about the path's direction
-    hardly moves the centres but swings a scene metres away)."""
-    M = np.einsum("nij,nkj->ik", ref_c2w[:, :3, :3], est_c2w[:, :3, :3])
-    U, _, Vt = np.linalg.svd(M)
-    R = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
-    return R, (ref_c2w[:, :3, 3] - est_c2w[:, :3, 3] @ R.T).mean(0)
-
-
 def _aligned_mesh(mesh_path: Path, est_c2w: np.ndarray, ref_c2w: np.ndarray):
-    """The mesh as a trisplat.eval.geometry.Surface moved into the reference's world by pose_alignment, or None when
+    """The mesh as a trisplat.eval.geometry.Surface moved into the reference's world by the rigid alignment of its
+    whole poses onto the reference's (trisplat.sfm.align.align_poses), or None when
     the file has no faces."""
     from trisplat.eval.geometry import Surface, load_surface
+    from trisplat.sfm.align import align_poses
 
     if not mesh_path.is_file():
         return None
@@ -100,7 +91,7 @@ def _aligned_mesh(mesh_path: Path, est_c2w: np.ndarray, ref_c2w: np.ndarray):
         return None
     if not s.is_mesh:
         return None
-    R, t = pose_alignment(est_c2w, ref_c2w)
+    R, t = align_poses(est_c2w, ref_c2w)
     return Surface(np.asarray(s.vertices, np.float64) @ R.T + t, np.asarray(s.faces))
 
 

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 from PIL import Image
+from scipy.spatial.transform import Rotation
 
 from trisplat.data.capture import RawCapture, RawView, SourceCamera
 from trisplat.data.images import read_image
@@ -102,18 +103,6 @@ def _nearest(stamps: np.ndarray, t: float) -> int:
     return int(np.argmin(np.abs(stamps - t)))
 
 
-def _quat_to_matrix(qx: float, qy: float, qz: float, qw: float) -> np.ndarray:
-    q = np.array([qw, qx, qy, qz]) / np.linalg.norm([qw, qx, qy, qz])
-    w, x, y, z = q
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-
-
 def _tum_views(root: Path) -> tuple[list[tuple[Path, Path, np.ndarray]], list[str]]:
     rgb = _read_tum_list(root / "rgb.txt")
     depth = _read_tum_list(root / "depth.txt")
@@ -132,7 +121,7 @@ def _tum_views(root: Path) -> tuple[list[tuple[Path, Path, np.ndarray]], list[st
         if len(vals) != 7:
             raise ValueError(f"{root / 'groundtruth.txt'}: malformed pose line (need tx ty tz qx qy qz qw)")
         c2w = np.eye(4)
-        c2w[:3, :3] = _quat_to_matrix(*vals[3:])
+        c2w[:3, :3] = Rotation.from_quat(vals[3:]).as_matrix()  # TUM's qx qy qz qw: scipy's scalar-last order
         c2w[:3, 3] = vals[:3]
         out.append((root / toks[0], root / depth[i][1][0], c2w))
     warnings = [f"dropped {dropped} colour frame(s) with no depth/pose within {TUM_MAX_TIME_DIFF} s"] if dropped else []

@@ -8,12 +8,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from trisplat.data.images import image_size, read_image
 from trisplat.data.rgbd import (
     INTRINSIC_FILES,
     TUM_DEPTH_SCALE,
-    _quat_to_matrix,
     _read_tum_list,
     read_depth_raw,
     read_open3d_intrinsics,
@@ -202,7 +202,7 @@ def read_tum(root: Path, depth_scale: float | None = None, max_dt: float = TUM_A
         if gi[k] >= 0:
             vals = [float(v) for v in gt[gi[k]][1][:7]]
             pose = np.eye(4)
-            pose[:3, :3] = _quat_to_matrix(*vals[3:])
+            pose[:3, :3] = Rotation.from_quat(vals[3:]).as_matrix()  # TUM's qx qy qz qw: scalar last, as scipy
             pose[:3, 3] = vals[:3]
         frames.append(StreamFrame(len(frames), cpath, dpath, float(rs[k]), pose))
     warnings = []

@@ -2,7 +2,10 @@
 image retrieval with a visual vocabulary built from the capture's own SIFT descriptors (no vocabulary file)."""
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
+from scipy.cluster.vq import kmeans2, vq
 
 Pair = tuple[int, int]  # indices into the ordered image list, i < j
 
@@ -28,30 +31,6 @@ def sequential_pairs(n: int, overlap: int = 10, quadratic: bool = True) -> list[
     return sorted(pairs)
 
 
-def _kmeans(data: np.ndarray, k: int, iters: int, rng: np.random.Generator) -> np.ndarray:
-    """Plain Lloyd k-means on float32 rows (k-means++-free: random distinct rows as seeds); returns centres [k,D]."""
-    centres = data[rng.choice(len(data), size=k, replace=False)].copy()
-    for _ in range(iters):
-        labels = assign(data, centres)
-        for c in range(k):
-            members = data[labels == c]
-            if len(members):
-                centres[c] = members.mean(0)
-            else:  # an empty cluster restarts at a random row
-                centres[c] = data[rng.integers(len(data))]
-    return centres
-
-
-def assign(data: np.ndarray, centres: np.ndarray, chunk: int = 65536) -> np.ndarray:
-    """Index of the nearest centre (Euclidean) of each row of `data`."""
-    out = np.empty(len(data), dtype=np.int64)
-    c2 = (centres**2).sum(1)
-    for s in range(0, len(data), chunk):
-        d = data[s : s + chunk]
-        out[s : s + chunk] = np.argmin(c2[None, :] - 2.0 * d @ centres.T, axis=1)
-    return out
-
-
 def retrieval_similarity(descriptors: list[np.ndarray], words: int = 256, sample: int = 50_000, iters: int = 8,
                          seed: int = 0) -> np.ndarray:
     """Cosine similarity [n,n] of tf-idf bag-of-words vectors, one per image.
@@ -68,11 +47,15 @@ def retrieval_similarity(descriptors: list[np.ndarray], words: int = 256, sample
         return np.zeros((n, n))
     pool = np.concatenate(pool)
     k = int(min(words, max(2, len(pool) // 20)))
-    centres = _kmeans(pool, k, iters, rng)
+    # the vocabulary: k-means (scipy's Lloyd iterations from k-means++ seeds) of the pooled descriptors; an empty
+    # cluster keeps its seed (it then simply collects no words)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*clusters is empty.*")
+        centres, _ = kmeans2(pool, k, iter=iters, minit="++", seed=rng, missing="warn")
     hist = np.zeros((n, k))
     for i, f in enumerate(feats):
         if len(f):
-            hist[i] = np.bincount(assign(f, centres), minlength=k)
+            hist[i] = np.bincount(vq(f, centres.astype(f.dtype), check_finite=False)[0], minlength=k)
     df = (hist > 0).sum(0)
     idf = np.log((n + 1) / (df + 1))
     tfidf = hist / np.maximum(hist.sum(1, keepdims=True), 1) * idf

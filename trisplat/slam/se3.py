@@ -5,11 +5,8 @@ from __future__ import annotations
 import torch
 
 from trisplat.slam.trajectory import (  # noqa: F401  (re-exported)
-    align_rigid,
     ate_rmse,
     log_so3_angle,
-    matrix_to_quat_xyzw,
-    quat_xyzw_to_matrix,
     read_tum_trajectory,
     write_tum_trajectory,
 )

@@ -1,9 +1,12 @@
-"""Camera trajectories without torch: TUM trajectory files, quaternions, rigid alignment and ATE."""
+"""Camera trajectories without torch: TUM trajectory files and ATE (rigid alignment: trisplat.sfm.align)."""
 from __future__ import annotations
 
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation
+
+from trisplat.sfm.align import umeyama
 
 
 def log_so3_angle(R: np.ndarray) -> float:
@@ -11,26 +14,12 @@ def log_so3_angle(R: np.ndarray) -> float:
     return float(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0)))
 
 
-def matrix_to_quat_xyzw(R: np.ndarray) -> np.ndarray:
-    """Unit quaternion (x, y, z, w) with w >= 0 of a rotation matrix [3,3]."""
-    from scipy.spatial.transform import Rotation
-
-    q = Rotation.from_matrix(R).as_quat()
-    return -q if q[3] < 0 else q
-
-
-def quat_xyzw_to_matrix(q) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_quat(np.asarray(q, dtype=np.float64)).as_matrix()
-
-
 def write_tum_trajectory(path: str | Path, stamps, c2ws) -> Path:
     """TUM trajectory file: one line 'stamp tx ty tz qx qy qz qw' (camera-to-world) per pose."""
     path = Path(path)
     lines = ["# trisplat slam: timestamp tx ty tz qx qy qz qw (camera-to-world, OpenCV camera axes, metres)"]
     for t, T in zip(stamps, c2ws):
-        q = matrix_to_quat_xyzw(T[:3, :3])
+        q = Rotation.from_matrix(T[:3, :3]).as_quat(canonical=True)  # x, y, z, w (scalar last, as TUM), w >= 0
         lines.append(f"{t:.6f} " + " ".join(f"{x:.9f}" for x in (*T[:3, 3], *q)))
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text("\n".join(lines) + "\n")
@@ -53,21 +42,11 @@ def read_tum_trajectory(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
         if len(nums) != 8:
             raise ValueError(f"{path}:{no}: malformed trajectory line: {len(nums)} values, need 8")
         T = np.eye(4)
-        T[:3, :3] = quat_xyzw_to_matrix(nums[4:8])
+        T[:3, :3] = Rotation.from_quat(nums[4:8]).as_matrix()  # TUM's qx qy qz qw: scipy's scalar-last order
         T[:3, 3] = nums[1:4]
         stamps.append(nums[0])
         poses.append(T)
     return np.array(stamps), np.array(poses).reshape(-1, 4, 4)
-
-
-def align_rigid(est: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Least-squares rotation R [3,3] and translation t [3] with R @ est_i + t ~ ref_i (Horn/Umeyama, no scale)."""
-    mu_e, mu_r = est.mean(0), ref.mean(0)
-    H = (est - mu_e).T @ (ref - mu_r)
-    U, _, Vt = np.linalg.svd(H)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
-    R = Vt.T @ D @ U.T
-    return R, mu_r - R @ mu_e
 
 
 def ate_rmse(est_c2w: np.ndarray, ref_c2w: np.ndarray) -> tuple[float, np.ndarray]:
@@ -76,6 +55,6 @@ def ate_rmse(est_c2w: np.ndarray, ref_c2w: np.ndarray) -> tuple[float, np.ndarra
     e, r = est_c2w[:, :3, 3], ref_c2w[:, :3, 3]
     if len(e) < 3:
         raise ValueError(f"ATE needs at least 3 poses with a reference, got {len(e)}")
-    R, t = align_rigid(e, r)
+    _, R, t = umeyama(e, r, scale=False)
     err = np.linalg.norm(e @ R.T + t - r, axis=1)
     return float(np.sqrt(np.mean(err**2))), err
