@@ -28,9 +28,9 @@ class ExportConfig:
     formats: tuple[Literal["ply", "obj", "glb", "model"], ...] = ("ply", "obj", "glb")
     """formats to write: ply (binary, per-vertex RGB), obj (+ mtl), glb (glTF 2.0, COLOR_0), model (SH PLY)"""
     up: Literal["auto", "y", "z", "capture"] = "auto"
-    """rotate meshes so the capture's up (mean camera up vector) becomes +Y (glTF, Unity) or +Z (Blender, MuJoCo);
-    capture: keep the capture's own axes in every format; auto: GLB Y-up (glTF defines +Y as up), PLY and OBJ in
-    the capture's axes"""
+    """rotate meshes so the capture's up (+Z for Blender captures, else estimated from the cameras) becomes +Y
+    (glTF, Unity) or +Z (Blender, MuJoCo); capture: keep the capture's own axes in every format; auto: GLB Y-up
+    (glTF defines +Y as up), PLY and OBJ in the capture's axes"""
     out: Annotated[Path | None, NO_DEFAULT_HINT] = None
     """output folder (default: RUN/export)"""
     force: bool = False

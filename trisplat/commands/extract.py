@@ -94,9 +94,9 @@ def extract_run(args: ExtractArgs) -> ExtractResult:
     obj, rest = split_mesh(positions, faces, colors, selected)
     out.mkdir(parents=True, exist_ok=True)
     to_capture = np.linalg.inv(np.asarray(normalization, dtype=np.float64))
-    from trisplat.io import estimate_capture_up
+    from trisplat.io import capture_up
 
-    up = estimate_capture_up(data.cameras)  # a GLB is turned Y-up (glTF's up); other formats keep the capture's axes
+    up = capture_up(data)  # a GLB is turned Y-up (glTF's up); other formats keep the capture's axes
     export_mesh(obj_path, obj.positions, obj.faces, obj.colors, transform=to_capture, capture_up=up)
     if len(rest.faces):
         export_mesh(rest_path, rest.positions, rest.faces, rest.colors, transform=to_capture, capture_up=up)

@@ -75,10 +75,10 @@ def main(argv: list[str]) -> int:
     up = None if cfg.up == "capture" else cfg.up
     capture_up = None
     if resolve_up(up, out) is not None:
-        from trisplat.io import estimate_capture_up
+        from trisplat.io import capture_up as capture_up_of
 
         try:
-            capture_up = estimate_capture_up(run.load_scene_data().cameras)
+            capture_up = capture_up_of(run.load_scene_data())
         except (FileNotFoundError, ValueError) as exc:
             print(f"trisplat mesh: cannot read the capture's cameras ({exc}); assuming a Z-up capture",
                   file=sys.stderr)

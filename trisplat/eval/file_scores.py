@@ -18,11 +18,11 @@ REPORT_MAX_IMAGE_VIEWS = 12
 def file_to_normalized(run, data, path: str | Path, up: str | None = "auto") -> np.ndarray:
     """[4,4] from the file's frame to the run's normalised training frame: the inverse of what the export applied
     (io.export_mesh: the inverse normalisation, then the up rotation of io.axes for `up`, 'auto' = Y-up for GLB)."""
-    from trisplat.io.axes import estimate_capture_up, up_rotation
+    from trisplat.io.axes import capture_up as capture_up_of, up_rotation
     from trisplat.io.mesh_files import resolve_up
 
     up = resolve_up(up, path)
-    capture_up = estimate_capture_up([data.cameras[int(i)] for i in data.train_indices]) if up is not None else None
+    capture_up = capture_up_of(data) if up is not None else None
     to_file = up_rotation(up, capture_up) @ np.linalg.inv(np.asarray(data.normalization, np.float64))
     return np.linalg.inv(to_file)
 

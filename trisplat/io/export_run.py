@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from trisplat.io.axes import estimate_capture_up
+from trisplat.io.axes import capture_up as capture_up_of
 from trisplat.io.mesh_files import FORMATS, export_mesh, resolve_up
 from trisplat.io.model_ply import save_model_ply
 
@@ -62,7 +62,7 @@ def export_run(
         data = run.load_scene_data()  # texturing needs the photos: no fallback
     if any(f != MODEL_FORMAT and resolve_up(up, f"x.{f}") is not None for f in formats):
         try:
-            capture_up = estimate_capture_up((data or run.load_scene_data()).cameras)
+            capture_up = capture_up_of(data or run.load_scene_data())
         except (FileNotFoundError, ValueError) as exc:
             warnings.warn(
                 f"{run_dir}: cannot read the capture's cameras ({exc}); assuming the default up axis", stacklevel=2

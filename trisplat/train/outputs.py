@@ -66,14 +66,14 @@ def write_outputs(trainer, pruned) -> dict:
     run_dir, data, cfg = trainer.run_dir, trainer.data, trainer.cfg
     scene = trainer.ts.to_scene()
     normalization = np.asarray(data.normalization, dtype=np.float64)
-    from trisplat.io import estimate_capture_up
+    from trisplat.io import capture_up
 
     from trisplat.texture.asset import build_asset
 
     asset = build_asset(scene, data, texture_size=int(getattr(cfg, "texture_size", 0) or 0),
                         faces=getattr(cfg, "export_faces", None), supersample=cfg.eval_supersample, near=cfg.near)
     write_model_files(run_dir, scene, normalization,
-                      estimate_capture_up([data.cameras[int(i)] for i in data.train_indices]), asset)
+                      capture_up(data), asset)
     # state.json stays "unfinished" until metrics.json exists, so a crash here is redone by --resume
 
     renders = run_dir / layout.RENDERS

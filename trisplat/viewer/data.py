@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from trisplat.cameras import Camera
-from trisplat.io.axes import estimate_capture_up
+from trisplat.io.axes import capture_up
 
 # OpenCV camera axes (x right, y down, z forward) -> three.js / OpenGL axes (x right, y up, z back).
 OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -224,7 +224,7 @@ def viewer_data_from_run(run_dir: str | Path, file: str | Path | None = None) ->
         positions = scene.positions.detach().cpu().numpy().astype(np.float64) @ inv[:3, :3].T + inv[:3, 3]
         faces = scene.faces.detach().cpu().numpy()
         colors = scene.base_colors().detach().cpu().clamp(0.0, 1.0).numpy()
-    up = estimate_capture_up(cameras) if cameras else None
+    up = capture_up(data) if data is not None and cameras else None
     return ViewerData(
         positions, faces, colors, cameras, load_image, up=np.array([0.0, 1.0, 0.0]) if up is None else up,
         title=run_dir.name if mesh_file is None else f"{run_dir.name}/{mesh_file.name}", glb=glb,
