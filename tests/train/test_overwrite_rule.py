@@ -105,7 +105,8 @@ def test_train_force_checks_the_capture_before_moving_the_old_run(run, tmp_path,
 
 
 def test_render_and_demo_check_their_options_before_the_long_work(run, tmp_path, capsys, monkeypatch):
-    """Cheap checks first: render refuses --device cuda without CUDA before loading the model; demo refuses a bad
+    """Cheap checks first: render refuses --device cuda without CUDA, export a bad --faces or --texture-size, before
+    loading the model; demo refuses a bad
     --steps / --minutes before generating its scene (a minute of ray casting)."""
     import torch
 
@@ -119,6 +120,10 @@ def test_render_and_demo_check_their_options_before_the_long_work(run, tmp_path,
     monkeypatch.setattr(trisplat.run.Run, "load_model", never)
     assert cli_main(["render", str(run), "--out", str(tmp_path / "r"), "--device", "cuda"]) == 1
     assert "device 'cuda'" in capsys.readouterr().err and not (tmp_path / "r").exists()
+
+    for bad, said in ((["--faces", "0"], "--faces must be at least 1"), (["--texture-size", "-4"], "--texture-size")):
+        assert cli_main(["export", str(run), "--out", str(tmp_path / "e"), *bad]) == 1
+        assert said in capsys.readouterr().err and not (tmp_path / "e").exists()
 
     monkeypatch.setattr(trisplat.synth, "write_blender_scene", never)
     for bad, said in ((["--steps", "0"], "--steps must be at least 1"), (["--minutes", "-1"], "--minutes must be > 0")):

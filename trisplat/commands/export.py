@@ -44,6 +44,10 @@ class ExportConfig:
 
 def main(argv: list[str]) -> int:
     cfg = tyro.cli(ExportConfig, args=argv, prog="trisplat export", description=__doc__, config=CLI_STYLE)
+    if cfg.faces is not None and cfg.faces < 1:  # cheap checks before the model and the photos are loaded
+        raise ValueError(f"--faces must be at least 1, got {cfg.faces}")
+    if cfg.texture_size < 0:
+        raise ValueError(f"--texture-size must be >= 0 (0: vertex colours only), got {cfg.texture_size}")
     out = cfg.run / EXPORT_SUBDIR if cfg.out is None else cfg.out
     formats = tuple(dict.fromkeys(cfg.formats))
     assert set(formats) <= set(EXPORT_FORMATS)
