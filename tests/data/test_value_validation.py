@@ -137,6 +137,18 @@ def test_a_jpeg_cut_in_half_is_refused_even_with_an_end_marker_in_its_metadata(t
         load(root, tmp_path, prepare="lazy")
 
 
+def test_a_jpeg_with_stray_bytes_between_segments_loads_as_pil_reads_it(tmp_path):
+    from trisplat.data.images import read_image
+
+    root = _colmap(tmp_path / "c")
+    p = root / "images" / "v1.jpg"
+    b = p.read_bytes()
+    app0_end = 4 + int.from_bytes(b[4:6], "big")
+    p.write_bytes(b[:app0_end] + b"\x00\x00junk" + b[app0_end:])  # libjpeg skips them (a warning), PIL decodes
+    assert read_image(p).shape == (H, W, 3)
+    assert len(load(root, tmp_path, prepare="lazy").cameras) == 3
+
+
 def test_a_progressive_jpeg_loads_and_is_refused_when_cut(tmp_path):
     root = _colmap(tmp_path / "c")
     p = root / "images" / "v2.jpg"

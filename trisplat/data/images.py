@@ -45,9 +45,14 @@ def _jpeg_end(mm) -> int | None:
         return None
     pos = 2
     while True:
-        while pos < n and mm[pos] == 0xFF and pos + 1 < n and mm[pos + 1] == 0xFF:  # fill bytes before a marker
+        if pos < n and mm[pos] != 0xFF:  # stray bytes between segments: skipped, as libjpeg (and so PIL) does
+            m = _JPEG_MARKER.search(mm, pos)
+            if m is None:
+                return None
+            pos = m.start()
+        while pos + 1 < n and mm[pos + 1] == 0xFF:  # fill bytes before a marker
             pos += 1
-        if pos + 2 > n or mm[pos] != 0xFF:
+        if pos + 2 > n:
             return None
         code = mm[pos + 1]
         if code == 0xD9:  # EOI
