@@ -19,7 +19,7 @@ import shutil
 import tempfile
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -73,7 +73,7 @@ class _RssSampler:
 
 
 def write_capture(out: Path, views: int, width: int, height: int, seed: int = 0) -> Path:
-    """A COLMAP capture of `views` ring cameras around the demo objects (radius 4, fov 60 degrees), all photos the
+    """A COLMAP capture of `views` ring cameras around the demo objects (radius 3, fov 60 degrees), all photos the
     same noise JPEG (hard links, or copies where links fail). Returns `out`."""
     from PIL import Image
 
@@ -81,7 +81,8 @@ def write_capture(out: Path, views: int, width: int, height: int, seed: int = 0)
     from trisplat.synth.scenes import demo_mesh
 
     (out / "images").mkdir(parents=True, exist_ok=True)
-    cams = ring_cameras(views, 4.0, 1.5, (0.0, 0.0, 0.3), width, height, 60.0, jitter=0.5, seed=seed)
+    cams = [replace(c, name=c.name.replace(".png", ".jpg"))  # a phone's photos: JPEG
+            for c in ring_cameras(views, 3.0, 1.5, (0.0, 0.0, 0.3), width, height, 60.0, jitter=0.5, seed=seed)]
     rng = np.random.default_rng(seed)
     small = rng.integers(0, 256, size=(height // 16 + 1, width // 16 + 1, 3), dtype=np.uint8)
     photo = Image.fromarray(small).resize((width, height), Image.BILINEAR)

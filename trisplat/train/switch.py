@@ -11,11 +11,13 @@ Training then fine-tunes this mesh (the trainer keeps its connectivity: no soup-
 """
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Literal
 
+import numba as nb
 import numpy as np
 import torch
 
@@ -107,56 +109,79 @@ class SwitchReport:
                 f"{self.render_s + self.fuse_s + self.mesh_s:.1f} s)")
 
 
-SURFACE_DEPTH_CHUNK = 1 << 20  # pixels whose plane depth is solved together (about 200 bytes each while it runs)
+@nb.njit(parallel=True, cache=True)
+def _plane_depth_kernel(face_id, local, Kinv, normal, num, nlen, zmin, zmax, zmean, depth):
+    H, W = face_id.shape
+    for r in nb.prange(H):
+        for c in range(W):
+            if face_id[r, c] < 0:
+                continue
+            f = local[face_id[r, c]]
+            x, y = c + 0.5, r + 0.5
+            rx = Kinv[0, 0] * x + Kinv[0, 1] * y + Kinv[0, 2]
+            ry = Kinv[1, 0] * x + Kinv[1, 1] * y + Kinv[1, 2]
+            rz = Kinv[2, 0] * x + Kinv[2, 1] * y + Kinv[2, 2]
+            den = normal[f, 0] * rx + normal[f, 1] * ry + normal[f, 2] * rz
+            z = zmean[f]
+            if abs(den) > 1e-6 * nlen[f] * math.sqrt(rx * rx + ry * ry + rz * rz):
+                z = num[f] / den
+                if not (np.isfinite(z) and z > 0):
+                    z = zmean[f]
+            depth[r, c] = min(max(z, zmin[f]), zmax[f])
 
 
 def surface_depth(face_id: np.ndarray, positions: np.ndarray, faces: np.ndarray, world_to_camera: np.ndarray,
                   K: np.ndarray) -> np.ndarray:
     """View depth [H,W] where each pixel centre's ray meets the plane of its face `face_id` [H,W] (the face at
     which the accumulated blending weight passes 0.5, the "median depth" of 2DGS-style extraction); inf where
-    face_id < 0 (nothing there: free space). Grazing planes fall back to the face's mean depth. Solved
-    SURFACE_DEPTH_CHUNK pixels at a time (a 12-megapixel view would otherwise hold gigabytes of temporaries)."""
+    face_id < 0 (nothing there: free space). Grazing planes fall back to the face's mean depth, and a plane met
+    far outside its triangle is clamped to the triangle's depth range. Per-face planes in numpy, per-pixel rays in
+    Numba: no per-pixel temporaries (a 12-megapixel view would otherwise hold gigabytes of them)."""
     H, W = face_id.shape
     depth = np.full((H, W), np.inf, dtype=np.float32)
-    flat_fid = face_id.reshape(-1)
-    flat_depth = depth.reshape(-1)
+    face_id = np.ascontiguousarray(face_id)
+    used = np.flatnonzero(np.bincount(face_id[face_id >= 0]))  # the faces shown (bincount: no sort of all pixels)
+    if len(used) == 0:
+        return depth
     R, t = np.asarray(world_to_camera)[:3, :3], np.asarray(world_to_camera)[:3, 3]
-    Kinv = np.linalg.inv(K)
-    for start in range(0, H * W, SURFACE_DEPTH_CHUNK):
-        sel = np.flatnonzero(flat_fid[start: start + SURFACE_DEPTH_CHUNK] >= 0) + start
-        if len(sel) == 0:
-            continue
-        rows, cols = np.divmod(sel, W)
-        f = flat_fid[sel]
-        tri = positions[faces[f]] @ R.T + t  # [n,3,3] camera frame
-        normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-        ray = np.stack([cols + 0.5, rows + 0.5, np.ones(len(rows))], 1) @ Kinv.T  # z = 1
-        den = np.einsum("ij,ij->i", normal, ray)
-        num = np.einsum("ij,ij->i", normal, tri[:, 0])
-        mean_z = tri[:, :, 2].mean(1)
-        ok = np.abs(den) > 1e-6 * np.linalg.norm(normal, axis=1) * np.linalg.norm(ray, axis=1)
-        z = np.where(ok, num / np.where(ok, den, 1.0), mean_z)
-        z = np.where(np.isfinite(z) & (z > 0), z, mean_z)
-        # a plane met far outside its triangle (grazing): clamp to the triangle's depth range
-        flat_depth[sel] = np.clip(z, tri[:, :, 2].min(1), tri[:, :, 2].max(1))
+    local = np.full(int(used[-1]) + 1, -1, np.int64)  # face id -> row of the per-face tables
+    local[used] = np.arange(len(used))
+    tri = np.asarray(positions, np.float64)[np.asarray(faces)[used]] @ R.T + t  # [n,3,3] camera frame
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    num = np.einsum("ij,ij->i", normal, tri[:, 0])
+    _plane_depth_kernel(face_id, local, np.linalg.inv(np.asarray(K, np.float64)), normal, num,
+                        np.linalg.norm(normal, axis=1), tri[:, :, 2].min(1), tri[:, :, 2].max(1), tri[:, :, 2].mean(1),
+                        depth)
     return depth
 
 
 def fill_holes(depth: np.ndarray, px: int) -> np.ndarray:
     """`depth` [H,W] with its small empty (inf) gaps filled: pixels inside the morphological closing (`px`
-    iterations) of the covered area take the depth of the nearest covered pixel."""
+    iterations) of the covered area take the depth of the nearest covered pixel. Computed in the covered area's
+    bounding box grown by px + 1 (the same result: the closing reaches no farther), so a small object in a large
+    photo costs little."""
     from scipy import ndimage
 
     covered = np.isfinite(depth)
     if px <= 0 or covered.all() or not covered.any():
         return depth
-    closed = ndimage.binary_closing(covered, iterations=int(px), border_value=0)
-    gaps = closed & ~covered
+    rows, cols = np.nonzero(covered.any(1))[0], np.nonzero(covered.any(0))[0]
+    m = int(px) + 1
+    r0, r1 = max(rows[0] - m, 0), min(rows[-1] + m + 1, depth.shape[0])
+    c0, c1 = max(cols[0] - m, 0), min(cols[-1] + m + 1, depth.shape[1])
+    win, cov = depth[r0:r1, c0:c1], covered[r0:r1, c0:c1]
+    closed = ndimage.binary_closing(cov, iterations=int(px), border_value=0)
+    gaps = closed & ~cov
     if not gaps.any():
         return depth
-    _, (ri, ci) = ndimage.distance_transform_edt(~covered, return_indices=True)
+    # a gap pixel lies within px (L1) of a covered one: its nearest covered pixel is inside the gaps' box grown by m
+    gr, gc = np.nonzero(gaps.any(1))[0], np.nonzero(gaps.any(0))[0]
+    a0, a1 = max(gr[0] - m, 0), min(gr[-1] + m + 1, gaps.shape[0])
+    b0, b1 = max(gc[0] - m, 0), min(gc[-1] + m + 1, gaps.shape[1])
+    g = gaps[a0:a1, b0:b1]
+    _, (ri, ci) = ndimage.distance_transform_edt(~cov[a0:a1, b0:b1], return_indices=True)
     out = depth.copy()
-    out[gaps] = depth[ri[gaps], ci[gaps]]
+    out[r0 + a0:r0 + a1, c0 + b0:c0 + b1][g] = win[a0:a1, b0:b1][ri[g], ci[g]]
     return out
 
 
