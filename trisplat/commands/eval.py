@@ -38,6 +38,12 @@ class EvalConfig:
     """score an exported file instead of the model: a .glb (relative paths: in RUN, e.g. mesh.glb) rendered as the
     glTF specification defines it (unlit, base colour texture decoded from sRGB and filtered bilinearly, linear
     COLOR_0, samples averaged in linear light, sRGB output); writes RUN/eval_<split>_file by default"""
+    lod: tuple[int, ...] = ()
+    """level of detail: export the surface decimated to each of these face counts (e.g. --lod 100000 50000 20000),
+    each with a texture re-fitted to the photos, score every GLB as with --file, and add PSNR against face count to
+    the report (RUN/eval_<split>_lod/lod.json and psnr_vs_faces.png)"""
+    texture_size: Annotated[int | None, NO_DEFAULT_HINT] = None
+    """with --lod: texture side of the exported levels (default: the run's texture_size; 0: vertex colours)"""
     up: Literal["auto", "y", "z", "capture"] = "auto"
     """with --file: the up axis the file was exported with (as `trisplat export --up`)"""
     device: Literal["cpu", "cuda", "auto"] = "cpu"
@@ -54,6 +60,10 @@ def main(argv: list[str]) -> int:
     from trisplat.run import open_run
 
     open_run(cfg.run)  # the input first: a folder that is no run is named as such
+    if cfg.lod and cfg.file is not None:
+        raise ValueError("--lod exports and scores its own files; it cannot be combined with --file")
+    if cfg.lod:
+        return _eval_lod(cfg)
     if cfg.file is not None:
         return _eval_file(cfg)
     device = resolve_device(cfg.device)  # before anything is written
@@ -83,4 +93,18 @@ def _eval_file(cfg: EvalConfig) -> int:
     print(json.dumps(json_safe(summary), indent=2))
     if cfg.report:
         print(f"report: {out / REPORT_HTML}")
+    return 0
+
+
+def _eval_lod(cfg: EvalConfig) -> int:
+    from trisplat.eval.lod import LOD_METRICS, evaluate_lod
+    from trisplat.io.atomic import refuse_to_overwrite
+
+    out = cfg.out or cfg.run / f"eval_{cfg.split}_lod"
+    refuse_to_overwrite([out / LOD_METRICS], cfg.force, "write elsewhere with --out DIR")
+    points = evaluate_lod(cfg.run, cfg.lod, texture_size=cfg.texture_size, split=cfg.split, out_dir=out,
+                          supersample=cfg.supersample, max_views=cfg.max_views)
+    for p in points:
+        print(f"{p.faces:>9} faces  texture {p.texture_size:>5}  {p.glb_bytes / 1e6:7.1f} MB  PSNR {p.psnr:6.2f} dB")
+    print(f"levels: {out / LOD_METRICS}")
     return 0
