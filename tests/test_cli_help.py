@@ -124,8 +124,8 @@ def test_minutes_and_connect_at_none_still_parse(tmp_path):
 
     default = cmd.TrainArgs(data=tyro.MISSING, out=tyro.MISSING, config=cmd.make_config("default"))
     args = tyro.cli(cmd.TrainArgs, default=default, config=(tyro.conf.OmitArgPrefixes,),
-                    args=[str(tmp_path), "--out", "r", "--minutes", "2.5", "--connect-at", "None", "--surface-sigma",
-                          "None"])
+                    args=[str(tmp_path), "--out", "r", "--minutes", "2.5", "--output", "soup", "--connect-at", "None",
+                          "--surface-sigma", "None"])
     assert args.config.minutes == 2.5 and args.config.connect_at is None and args.config.surface_sigma is None
 
 

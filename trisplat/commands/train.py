@@ -36,7 +36,9 @@ class TrainArgs:
     shows its values)."""
     resume: bool = False
     """Continue a run from its last checkpoint with its saved configuration; --minutes, --checkpoint-every-s,
-    --log-every, --eval-max-views, --num-renders and --eval-supersample may change, other settings are refused."""
+    --log-every, --eval-max-views, --num-renders and --eval-supersample may change, and so may --output and
+    --connect-at until the run has switched to a surface (how it is finished: after a failed switch, `--resume
+    --output soup` or `--resume --connect-at P`); other settings are refused."""
     force: bool = False
     """Start over in a directory that holds a run (the old run is moved aside, never deleted)."""
     quiet: bool = False
@@ -66,6 +68,9 @@ def _preset_in(argv: list[str]) -> str:
 # settings a resumed run takes from the command line: they change how it is run, not what is being optimised
 RESUME_OVERRIDABLE = ("minutes", "checkpoint_every_s", "log_every", "eval_max_views", "num_renders",
                       "eval_supersample")
+# how the run is finished: a resumed run may change them until it has switched to a connected surface (a switch that
+# failed is tried again at a moved --connect-at; --output soup finishes as a soup)
+RESUME_FINISHING = ("output", "connect_at")
 
 
 def explicit_fields(argv: list[str]) -> set[str]:
@@ -84,20 +89,45 @@ def explicit_fields(argv: list[str]) -> set[str]:
     return found
 
 
+def _option(name: str) -> str:
+    return "--" + name.replace("_", "-")
+
+
 def resume_config(out: Path, saved: dict, given: TrainConfig, explicit: set[str]) -> TrainConfig:
     """The saved configuration of a run with the explicitly given settings applied. Settings in RESUME_OVERRIDABLE
-    are honoured (--minutes: the whole run, time already spent included, fits into that many minutes); any other
-    setting that differs from the saved one is refused: the checkpoint was optimised with the saved values."""
-    cfg = TrainConfig.from_dict({k: v for k, v in saved.items() if k not in ("data", "data_options")})
-    changed = {k for k in explicit if getattr(given, k) != getattr(cfg, k)}
-    refused = sorted(changed - set(RESUME_OVERRIDABLE))
+    are honoured (--minutes: the whole run, time already spent included, fits into that many minutes), and those in
+    RESUME_FINISHING while the run's checkpoint has not switched to a connected surface; any other setting that
+    differs from the saved one is refused: the checkpoint was optimised with the saved values."""
+    fields = dataclasses.fields(TrainConfig)
+    values = {**{f.name: f.default for f in fields if f.default is not dataclasses.MISSING},
+              **{k: v for k, v in saved.items() if k not in ("data", "data_options")}}  # older runs lack newer keys
+    if "background" in values:
+        values["background"] = tuple(values["background"])
+    unknown = set(values) - {f.name for f in fields}
+    if unknown:
+        raise ValueError(f"{out / layout.CONFIG}: unknown config keys {sorted(unknown)}")
+    changed = {k for k in explicit if getattr(given, k) != values.get(k, getattr(given, k))}
+    refused = sorted(changed - set(RESUME_OVERRIDABLE) - set(RESUME_FINISHING))
     if refused:
-        what = ", ".join(f"--{k.replace('_', '-')} (saved {getattr(cfg, k)!r}, given {getattr(given, k)!r})"
-                         for k in refused)
+        what = ", ".join(f"{_option(k)} (saved {values[k]!r}, given {getattr(given, k)!r})" for k in refused)
         raise ValueError(f"{out}: --resume continues the saved configuration and cannot change {what}; drop these "
                          f"options, or start a new run with --force. A resumed run accepts "
-                         f"{', '.join('--' + k.replace('_', '-') for k in RESUME_OVERRIDABLE)}.")
-    return dataclasses.replace(cfg, **{k: getattr(given, k) for k in changed})
+                         f"{', '.join(map(_option, RESUME_OVERRIDABLE + RESUME_FINISHING))} (the last two until "
+                         "the run has switched to a connected surface).")
+    finishing = sorted(changed & set(RESUME_FINISHING))
+    if finishing and (out / layout.CHECKPOINT).exists():
+        from trisplat.train.checkpoint import load_checkpoint
+
+        ckpt = load_checkpoint(out / layout.CHECKPOINT)
+        if ckpt["extra"].get("connected"):
+            raise ValueError(
+                f"{out}: the run has already switched to a connected surface (its checkpoint is at step "
+                f"{int(ckpt['step'])}), so {' and '.join(map(_option, finishing))} can no longer change; drop "
+                f"{'them' if len(finishing) > 1 else 'it'}, or start a new run with --force")
+    try:
+        return TrainConfig.from_dict({**values, **{k: getattr(given, k) for k in changed}})
+    except ValueError as exc:  # e.g. a saved surface run without a switch point (connect_at None, before issue 26)
+        raise ValueError(f"{out / layout.CONFIG}: {exc}") from exc
 
 
 def run_training(args: TrainArgs, explicit: set[str] | None = None):
@@ -150,9 +180,9 @@ def run_training(args: TrainArgs, explicit: set[str] | None = None):
         cfg = dataclasses.replace(cfg, backend="warp")
     trainer = Trainer(cfg, data, out, resume=resume, show_progress=not args.quiet,
                       data_options=data_options, data_path=data_path, device=device)
-    if resume and cfg != TrainConfig.from_dict({k: v for k, v in run.config.items()
-                                                 if k not in ("data", "data_options")}):
-        atomic_write_text(out / layout.CONFIG, json.dumps({**run.config, **cfg.to_dict()}, indent=2))
+    updated = {**run.config, **json.loads(json.dumps(cfg.to_dict()))} if resume else None
+    if resume and updated != run.config:
+        atomic_write_text(out / layout.CONFIG, json.dumps(updated, indent=2))
     return trainer.train()
 
 
@@ -243,6 +273,23 @@ def choose_downscale(args: TrainArgs, explicit: set[str]) -> TrainArgs:
     return args
 
 
+def result_shape(m: dict) -> str:
+    """What a finished run's mesh is, for its final line, from its metrics.json: one connected surface, or a soup
+    and why (asked for with --output soup, the switch failed or was given up, or the run ended before its switch)."""
+    if m.get("connected"):
+        return "one connected surface"
+    failure = m.get("switch_failure") or {}
+    error = str(failure.get("error", "")).splitlines()[0][:160] if failure else ""
+    failed = (f"the switch to a surface failed at step {failure['step']} ({error})" if failure.get("step") is not None
+              else "the switch to a surface failed or was given up")
+    if m.get("output") == "soup":
+        return ("a triangle soup, as --output soup asked" + (f" after {failed}" if m.get("switch_failed") else ""))
+    if m.get("switch_failed"):
+        return f"a triangle soup, NOT a connected surface: {failed}"
+    return (f"a triangle soup, NOT a connected surface: the run ended before its switch point (--connect-at "
+            f"{m.get('connect_at')})")
+
+
 def main(argv: list[str]) -> int:
     preset = _preset_in(argv)
     default = TrainArgs(data=tyro.MISSING, out=tyro.MISSING, preset=preset,  # type: ignore[arg-type]
@@ -265,9 +312,7 @@ def main(argv: list[str]) -> int:
         lp = f", LPIPS {m['lpips']:.3f}" if m.get("lpips") is not None else ""
         health = m.get("health") or {"ok": True, "problems": []}
         what = "done" if health["ok"] else "finished, but the result is NOT trustworthy"
-        shape = ("one connected surface" if m.get("connected") else
-                 "a triangle soup (the switch to a surface failed or was given up)" if m.get("switch_failed") else
-                 "a triangle soup")
+        shape = result_shape(m)
         far = f" + a far field of {m['far_field_faces']} soup faces" if m.get("far_field_faces") else ""
         cov = f", {100 * m['coverage']:.1f}% of test pixels covered" if m.get("coverage") is not None else ""
         print(f"{what} in {result.wall_s / 60:.1f} min: test PSNR {m['psnr']:.2f} dB (hard), SSIM {m['ssim']:.3f}{lp}, "

@@ -8,6 +8,12 @@ from typing import Annotated, Literal
 import tyro
 
 PAPER_STEPS = 30_000  # the Triangle Splatting+ schedule is specified for 30k iterations; we scale it by progress
+# Progress at which the soup becomes one connected surface (trisplat.train.switch): the default of every preset with
+# the fusion switch (the paper's ~11k/30k is for its restricted Delaunay switch, the meshsplatting preset's; the fusion
+# switch comes after the densification window, which ends at 13k/30k in the paper's schedule).
+# lego at 200x200, one 12-minute soup saved at 0.5 / 0.65 / 0.8, each fused and fine-tuned for the rest of the run
+# (2x2 samples, first 16 test views; the soup itself ends at 26.15): 25.5 / 25.48 / 25.16 dB (docs/benchmarks.md).
+SURFACE_SWITCH_AT = 0.6
 
 
 @dataclass
@@ -172,9 +178,12 @@ class TrainConfig:
     # -- MeshSplatting (soup -> connected mesh)
     output: Literal["surface", "soup"] = "surface"
     """'surface': the soup becomes ONE connected surface at `connect_at` and training fine-tunes it (the mesh a
-    game or physics engine wants); 'soup': independent triangles to the end (no switch; connect_at is ignored)."""
-    connect_at: Annotated[float | None, tyro.conf.arg(metavar="FLOAT|None")] = None
-    """Progress (0-1) at which the soup is replaced by a connected mesh (stage 2); None = never (a soup to the end)."""
+    game or physics engine wants); 'soup': independent triangles to the end (no switch; connect_at is ignored). May
+    change on --resume until the run has switched (`--resume --output soup` finishes a run whose switch failed)."""
+    connect_at: Annotated[float | None, tyro.conf.arg(metavar="FLOAT|None")] = SURFACE_SWITCH_AT
+    """Progress (0-1) at which the soup is replaced by a connected mesh (stage 2). None only with --output soup (a
+    surface run must switch). May change on --resume until the run has switched (a later point, or an earlier one:
+    then it switches at once)."""
     connect_method: Literal["fusion", "restricted_delaunay"] = "fusion"
     """'fusion': depth of the soup's renders fused into a TSDF, marching cubes, decimated (trisplat.train.switch);
     'restricted_delaunay': MeshSplatting's restricted Delaunay of the soup's vertices (thin soups only)."""
@@ -260,8 +269,13 @@ class TrainConfig:
             raise ValueError(f"connect_method must be 'fusion' or 'restricted_delaunay', got {self.connect_method!r}")
         if self.exposure not in ("auto", "on", "off"):
             raise ValueError(f"exposure must be 'auto', 'on' or 'off', got {self.exposure!r}")
-        if self.connect_at is not None and not 0.0 <= self.connect_at <= 1.0:
-            raise ValueError(f"connect_at must be a progress in [0, 1] or None, got {self.connect_at}")
+        if self.connect_at is not None and not 0.0 <= self.connect_at < 1.0:
+            raise ValueError(f"connect_at must be a progress in [0, 1) (the last step's progress is below 1: a switch "
+                             f"at 1 never happens) or None, got {self.connect_at}")
+        if self.output == "surface" and self.connect_at is None:
+            raise ValueError("connect_at is None but output is 'surface': a surface run must switch from the soup to "
+                             f"a connected surface; give --connect-at P (progress 0-1, default {SURFACE_SWITCH_AT}) "
+                             "or --output soup for a soup to the end")
 
     @property
     def switch_at(self) -> float | None:
@@ -283,11 +297,6 @@ class TrainConfig:
         return TrainConfig(**d)
 
 
-# Progress at which the soup becomes one connected surface (trisplat.train.switch) in the fast and default presets.
-# lego at 200x200, one 12-minute soup saved at 0.5 / 0.65 / 0.8, each fused and fine-tuned for the rest of the run
-# (2x2 samples, first 16 test views; the soup itself ends at 26.15): 25.5 / 25.48 / 25.16 dB (docs/benchmarks.md).
-SURFACE_SWITCH_AT = 0.6
-
 PRESETS: dict[str, dict] = {
     # Sized for a CPU (measured on 2 cores, docs/benchmarks.md). The TS+ densification window (until 13k of 30k
     # steps) followed by ~12k steps of pruning left lego and fox at 9-11k faces; densifying until 70% of the run with
@@ -308,7 +317,8 @@ PRESETS: dict[str, dict] = {
                     init_random_points=4_000, init_max_points=3_000, supersample_2x_from=1.01,
                     connect_at=SURFACE_SWITCH_AT, eval_every=0.1),
     # The paper's schedule.
-    "full": dict(steps=30_000, sh_degree=3, max_vertices=2_000_000, supersample_4x_from=0.95),
+    "full": dict(steps=30_000, sh_degree=3, max_vertices=2_000_000, supersample_4x_from=0.95,
+                 connect_at=SURFACE_SWITCH_AT),
     # MeshSplatting: soup initialisation, stage 2 restricted Delaunay at ~11k/30k, fine-tuning after.
     # No pruning after the switch and no final max-weight pass: both would open holes in the connected surface.
     "meshsplatting": dict(steps=7_000, init="soup", connect_at=11_000 / PAPER_STEPS, connect_method="restricted_delaunay",

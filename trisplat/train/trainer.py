@@ -1,6 +1,7 @@
 """The training loop: soft, semi-transparent triangles at the start, sharp opaque ones at the end."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import sys
@@ -85,7 +86,10 @@ class Trainer:
         self._failed_step = 0  # the step of the last NaN/Inf rollback
         self.wall_s = 0.0
         self.connected = False
-        self.switch_failed = False  # the fusion switch found no surface: the run stays a soup
+        self.switch_failed = False  # the switch failed (or its surface was given up): the run stays a soup
+        self.switch_failure: dict | None = None  # why: {"step", "progress", "connect_at", "error"}
+        self.switched_p: float | None = None  # progress of the (first) switch attempt: sigma's surface schedule starts
+        # there whatever its outcome (a soup whose switch failed keeps the schedule it trained with)
         self.surface_pass: dict | None = None
         self.health = RunHealth()
         self.prune_off = False  # pruning switched off after a collapse (a change of course)
@@ -107,6 +111,7 @@ class Trainer:
         if resume:
             ckpt = load_checkpoint(self.run_dir / layout.CHECKPOINT)
             self._restore(ckpt)
+            self._retry_moved_switch()
             self._truncate_history()  # steps after the checkpoint are replayed: their records would be doubled
         else:
             if initial is None:
@@ -138,6 +143,7 @@ class Trainer:
                 "last_prune": self._last_prune, "last_densify": self._last_densify, "last_refine": self._last_refine,
                 "lr_scale": self.lr_scale, "rollbacks": self.rollbacks, "failed_step": self._failed_step,
                 "connected": self.connected, "switch_failed": self.switch_failed, "far_faces": self.far_faces,
+                "switch_failure": self.switch_failure, "switched_p": self.switched_p,
                 "health": self.health.to_dict(),
                 "exposure": None if self.exposure is None else self.exposure.state(),
                 "prune_off": self.prune_off, "switch_s": self.switch_s,
@@ -155,6 +161,10 @@ class Trainer:
         self._failed_step = int(ckpt["extra"].get("failed_step", 0))
         self.connected = bool(ckpt["extra"].get("connected", False))
         self.switch_failed = bool(ckpt["extra"].get("switch_failed", False))
+        self.switch_failure = ckpt["extra"].get("switch_failure")
+        switched_p = ckpt["extra"].get("switched_p")
+        self.switched_p = None if switched_p is None else float(switched_p)
+        self._sigma_cfg = None
         self.far_faces = int(ckpt["extra"].get("far_faces", 0))
         self.health = RunHealth.from_dict(ckpt["extra"].get("health"))
         if self.exposure is not None and ckpt["extra"].get("exposure") is not None:
@@ -175,7 +185,7 @@ class Trainer:
 
     def _write_state(self, finished: bool) -> None:
         state = {"finished": finished, "step": self.step, "total_steps": self.clock.total,
-                 "sigma": schedules.sigma(self.clock.p(self.step), self.cfg), "opacity_floor": self.ts.opacity_floor}
+                 "sigma": self.sigma(self.clock.p(self.step)), "opacity_floor": self.ts.opacity_floor}
         tmp = self.run_dir / (layout.STATE + ".tmp")
         tmp.write_text(json.dumps(state, indent=2))
         tmp.replace(self.run_dir / layout.STATE)
@@ -206,7 +216,7 @@ class Trainer:
         sh = self.ts.sh()[:, : num_sh_bases(deg)]
         return rasterize(
             self.ts.params["positions"], self.ts.faces.to(torch.int32), sh, self.ts.opacities(),
-            schedules.sigma(p, self.cfg) if sigma is None else sigma,
+            self.sigma(p) if sigma is None else sigma,
             torch.as_tensor(cam.world_to_camera, dtype=torch.float32), torch.as_tensor(cam.K, dtype=torch.float32),
             cam.width, cam.height, background=self.background, near=self.cfg.near, supersample=supersample,
             tile_size=self.cfg.tile_size, backend=self.cfg.backend)
@@ -220,6 +230,33 @@ class Trainer:
                "sh_rest": self.cfg.lr_sh_dc * self.cfg.lr_sh_rest_ratio, "opacity_logit": self.cfg.lr_opacity}
         for group in self.ts.optimizer.param_groups:
             group["lr"] = lrs[group["name"]] * self.lr_scale
+
+    def sigma(self, p: float) -> float:
+        """Window sharpness at progress p (schedules.sigma), its surface schedule starting where the switch was
+        attempted (switched_p) once it was: a run resumed with another --connect-at or --output keeps the sharpness
+        it trained with instead of jumping."""
+        at = self.switched_p if self.switched_p is not None else self.cfg.switch_at
+        if at != self.cfg.switch_at:
+            if getattr(self, "_sigma_cfg", None) is None or self._sigma_cfg.connect_at != at:
+                self._sigma_cfg = dataclasses.replace(self.cfg, output="surface", connect_at=at)
+            return schedules.sigma(p, self._sigma_cfg)
+        return schedules.sigma(p, self.cfg)
+
+    def _retry_moved_switch(self) -> None:
+        """A resumed run whose switch failed (or was given up) at one --connect-at and that now has another: the
+        switch is tried again at the new point (at once when the run is already past it)."""
+        failure = self.switch_failure
+        if not (self.switch_failed and not self.connected and self.cfg.switch_at is not None and failure is not None
+                and failure.get("connect_at") != self.cfg.connect_at):
+            return
+        self.switch_failed = False
+        note = (f"the switch failed at step {failure.get('step')} ({failure.get('error')}); --connect-at is now "
+                f"{self.cfg.connect_at:g}: it is tried again "
+                + ("at once" if self.clock.p(self.step) >= self.cfg.connect_at else
+                   f"at progress {self.cfg.connect_at:g}"))
+        self._log({"step": self.step, "switch_retry": note})
+        if self.show_progress:
+            print(f"switch: {note}", file=sys.stderr, flush=True)
 
     def _face_pairs(self) -> torch.Tensor:
         """Faces sharing an edge (for the smoothness term), recomputed whenever the face table changed."""
@@ -293,6 +330,7 @@ class Trainer:
         if cfg.switch_at is not None and not self.connected and not self.switch_failed and p >= cfg.switch_at:
             t_switch = time.perf_counter()
             self._connect()
+            ts = self.ts  # a failed switch restores the soup as a new object
             self.switch_s += time.perf_counter() - t_switch
             self._untimed_s += time.perf_counter() - t_switch
             if self.connected:
@@ -337,12 +375,45 @@ class Trainer:
 
     def _connect(self) -> None:
         """The stage-2 switch: the soup becomes one connected surface (cfg.connect_method), then fine-tuning. The
-        soup is kept first as checkpoints/soup.pt (a checkpoint like last.pt: the switch can be redone from it)."""
-        atomic_torch_save(checkpoint_state(self.ts, self.step, self.clock.total, self.generator, self._extra()),
-                          self.run_dir / layout.SOUP_CHECKPOINT)
-        if self.cfg.connect_method == "fusion":
-            self._connect_fusion()
-            return
+        soup is kept first as checkpoints/soup.pt (a checkpoint like last.pt: the switch can be redone from it).
+
+        A switch that fails, whatever the error (a MemoryError, a Numba or trimesh error, no surface found), does not
+        end hours of training: the soup is restored, the run goes on as a soup and says why (see _switch_failed).
+        Only KeyboardInterrupt and SystemExit (not Exceptions) pass."""
+        soup = checkpoint_state(self.ts, self.step, self.clock.total, self.generator, self._extra())
+        atomic_torch_save(soup, self.run_dir / layout.SOUP_CHECKPOINT)
+        if self.switched_p is None:
+            self.switched_p = self.clock.p(self.step)
+        try:
+            if self.cfg.connect_method == "fusion":
+                self._connect_fusion()
+            else:
+                self._connect_restricted_delaunay()
+        except Exception as exc:  # noqa: BLE001 - any error of the switch: the soup goes on (module docstring)
+            self._switch_failed(exc, soup)
+
+    def _switch_failed(self, exc: BaseException, soup: dict) -> None:
+        """The switch raised `exc`: back to the soup it started from (`soup`, a checkpoint state), marked failed,
+        said on stderr and in the history, and recorded at once in checkpoints/last.pt (the last good state with the
+        failure noted: a resumed run replays the same soup steps and does not try the same switch again; a
+        --resume with another --connect-at tries again there, --resume --output soup finishes as a soup)."""
+        self.ts = restore_trainable(soup)
+        self.connected, self.far_faces = False, 0
+        error = f"{type(exc).__name__}: {str(exc).strip() or 'no message'}"
+        self.switch_failed = True
+        self.switch_failure = {"step": self.step, "progress": self.clock.p(self.step),
+                               "connect_at": self.cfg.connect_at, "error": error}
+        msg = (f"the switch to a connected surface at step {self.step} failed ({error}); training goes on with the "
+               f"soup, which the run will end as. To finish otherwise, stop it (Ctrl-C) and continue with "
+               f"`trisplat train DATA --out {self.run_dir} --resume --connect-at P` (P after "
+               f"{self.clock.p(self.step):.2f}: the switch is tried again there) or `--resume --output soup`")
+        self._log({"step": self.step, "switch_failed": msg, "error": error})
+        print(f"warning: {msg}", file=sys.stderr, flush=True)
+        for key in ("switch_failed", "switch_failure", "switched_p"):
+            self._last_good["extra"][key] = getattr(self, key)
+        atomic_torch_save(self._last_good, self.run_dir / layout.CHECKPOINT)
+
+    def _connect_restricted_delaunay(self) -> None:
         from trisplat.mesh.connect import ConnectConfig, connect_scene
 
         # layered soups make the restricted Delaunay keep several faces per edge: keep the two best-shaped ones
@@ -389,18 +460,9 @@ class Trainer:
         # of the normalised frame, where the cameras are) and the soup beyond it is kept as a far-field layer
         soup = self.ts.to_scene()
         box = self.data.bounds if masked else inner_box()
-        try:
-            surface, report = soup_to_surface(
-                soup, [self.data.cameras[i] for i in train], lambda n: self.render(train[n], p), box, scfg, say,
-                images=lambda n: self.data.load_image(train[n]))
-        except (ValueError, MemoryError, RuntimeError) as exc:
-            # hours of training are not thrown away: the run goes on as a soup and says why
-            self.switch_failed = True
-            msg = (f"the switch to a connected surface at step {self.step} failed ({type(exc).__name__}: {exc}); "
-                   "training goes on with the soup (try a later --connect-at)")
-            self._log({"step": self.step, "switch_failed": msg})
-            print(f"warning: {msg}", file=sys.stderr, flush=True)
-            return
+        surface, report = soup_to_surface(
+            soup, [self.data.cameras[i] for i in train], lambda n: self.render(train[n], p), box, scfg, say,
+            images=lambda n: self.data.load_image(train[n]))
         far = far_field_mask(soup, box) if not masked else np.zeros(soup.num_faces, bool)
         if far.any():
             surface = append_scene(surface, sub_scene(soup, far))
@@ -444,14 +506,21 @@ class Trainer:
                 "check `trisplat info` and the poses report, or try --output soup or a longer --minutes.")
         target = self._best_state if self._best_state is not None else self._last_good
         wall_s, health, was_connected = self.wall_s, self.health, self.connected
+        failed, failure, switched_p = self.switch_failed, self.switch_failure, self.switched_p
         self._restore(target)
         self.wall_s, self.health = wall_s, health  # time spent stays spent; the record of the run stays
+        if failed and not self.switch_failed:  # a switch that failed is not tried again after rolling back
+            self.switch_failed, self.switch_failure = True, failure
+        if self.switched_p is None:
+            self.switched_p = switched_p
         changes = []
         if not self.connected:
             self.prune_off = True
             changes.append("pruning of the soup switched off")
         if was_connected and not self.connected:
             self.switch_failed = True
+            self.switch_failure = {"step": self.step, "progress": self.clock.p(self.step),
+                                   "connect_at": self.cfg.connect_at, "error": f"given up after a collapse ({msg})"}
             changes.append("the connected surface given up (the run goes on as a soup)")
         self.lr_scale *= 0.5
         changes.append("learning rates halved")
@@ -577,7 +646,7 @@ class Trainer:
             if self.step % cfg.log_every == 0 or self.step == self.clock.total:
                 rec = {"step": self.step, "wall_s": round(self.wall_s, 3), "loss": info["loss"], "psnr": info["psnr"],
                        "faces": self.ts.num_faces, "vertices": self.ts.num_vertices,
-                       "sigma": schedules.sigma(self.clock.p(self.step), cfg), "floor": self.ts.opacity_floor}
+                       "sigma": self.sigma(self.clock.p(self.step)), "floor": self.ts.opacity_floor}
                 self._log(rec)
                 bar.set_postfix(({"step": f"{self.step}/{self.clock.total}"} if by_percent else {})
                                 | dict(loss=f"{info['loss']:.4f}", psnr=f"{info['psnr']:.2f}", faces=self.ts.num_faces,
@@ -652,6 +721,8 @@ class Trainer:
         if self.connected:
             self.surface_pass = self._final_surface_pass()
         metrics = write_outputs(self, pruned)
+        metrics["connect_at"] = self.cfg.connect_at
+        metrics["switch_failure"] = self.switch_failure if self.switch_failed else None
         metrics.update(self._run_verdict(metrics))
         atomic_write_text(self.run_dir / layout.METRICS, json.dumps(metrics, indent=2))
         self.wall_s += time.perf_counter() - t0
