@@ -63,7 +63,7 @@ def test_layered_soup_becomes_one_manifold_surface_with_its_colours():
     assert st.connected_components == 1
     assert 0.45 < st.vertex_face_ratio < 0.55
     assert st.non_manifold_edges == 0 and st.consistently_oriented
-    assert report.faces == len(f) <= 2 * soup.num_faces
+    assert report.faces == len(f)
     # on the visible (outer) layer, within two voxels
     r = np.linalg.norm(v, axis=1)
     # (a few vertices, where the fine grid resolves a gap between the layers, reach the inner layer at ~0.5)
@@ -78,6 +78,61 @@ def test_layered_soup_becomes_one_manifold_surface_with_its_colours():
     assert rgb[bottom, 2].mean() > 0.7 and rgb[bottom, 0].mean() < 0.3
     # opacity starts at least at the configured value, above the soup's floor
     assert float(surface.opacities().min()) >= 0.9 - 1e-4
+
+
+def test_decimation_meets_the_face_budget_and_keeps_one_watertight_manifold_piece():
+    """Marching cubes gives far more faces than a budget of 1000: decimation (and the manifold repair after it)
+    runs, and the result has the budget's face count, in one closed, manifold, outward piece on the sphere."""
+    soup = layered_sphere_soup()
+    cams = fibonacci_cameras(20)
+    cfg = SurfaceConfig(resolution=48, face_ratio=0.1, max_faces=1500)  # budget max(0.1 x 4500, 1000) = 1000
+    surface, report = soup_to_surface(soup, cams, lambda n: _render(soup, cams[n]),
+                                      np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]), cfg)
+    v, f = surface.positions.numpy().astype(np.float64), surface.faces.numpy()
+    assert report.marching_cubes_faces > 10 * 1000  # so decimation had work to do
+    assert 950 <= len(f) <= 1000 and report.faces == len(f)
+    st = mesh_statistics(v, f)
+    assert st.connected_components == 1 and st.watertight and st.non_manifold_edges == 0
+    assert st.consistently_oriented and st.vertex_face_ratio == pytest.approx(0.5, abs=0.01)  # closed, genus 0
+    r = np.linalg.norm(v, axis=1)
+    assert np.abs(r - 0.6 * 1.03).max() < 3 * report.voxel  # still the (outer layer's) sphere
+    tri = v[f]
+    assert np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])).sum() > 0  # outward
+    rgb = (0.28209479177387814 * surface.sh[:, 0] + 0.5).numpy()  # the colours came along the decimated vertices
+    assert rgb[v[:, 2] > 0.15, 0].mean() > 0.7 and rgb[v[:, 2] < -0.15, 2].mean() > 0.7
+
+
+def test_drop_enclosed_removes_the_unseen_inside_wall_and_keeps_what_the_views_see():
+    """The trainer's default (surface_unseen_faces='drop_enclosed') through the whole switch, on a case with a known
+    enclosed part: the layered sphere seen only from above (elevations 15-75 degrees) with unseen space solid only
+    a few voxels deep fuses into a hollow shell whose inside wall joins the outside through the never-seen underside.
+    drop_enclosed removes that wall and nothing the views see; the unseen underside, facing open space, stays."""
+    soup = layered_sphere_soup()
+    cams = []
+    for el in (15, 35, 55, 75):
+        for az in range(0, 360, 30):
+            e, a = np.radians(el), np.radians(az + el)
+            cams.append(look_at(2.5 * np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])))
+    r_out = 0.6 * 1.03
+    parts = {}
+    for mode in ("keep", "drop_enclosed", "drop"):
+        cfg = SurfaceConfig(resolution=48, max_depth_fraction=0.0, unseen_faces=mode, face_ratio=100.0)
+        surface, report = soup_to_surface(soup, cams, lambda n: _render(soup, cams[n]),
+                                          np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]), cfg)
+        v, f = surface.positions.numpy().astype(np.float64), surface.faces.numpy()
+        c = v[f].mean(1)
+        rc = np.linalg.norm(c, axis=1)
+        outer = rc > r_out - 1.5 * report.voxel
+        parts[mode] = {"inner": int((rc < r_out - 2.5 * report.voxel).sum()),  # the hollow's inside wall
+                       "top": int((outer & (c[:, 2] > 0.2)).sum()),  # the outside the views see
+                       "bottom": int((outer & (c[:, 2] < -0.5)).sum()),  # the outside no view sees
+                       "pieces": mesh_statistics(v, f).connected_components}
+    keep, enclosed, drop = parts["keep"], parts["drop_enclosed"], parts["drop"]
+    assert keep["inner"] > 2000 and keep["pieces"] == 1  # the enclosed wall is there, joined to the outside
+    assert enclosed["inner"] < 0.05 * keep["inner"]  # ... and gone
+    assert enclosed["top"] == keep["top"] > 2000  # every face the views see stays
+    assert enclosed["bottom"] >= 0.98 * keep["bottom"] > 1000 and enclosed["pieces"] == 1  # the underside closes it
+    assert drop["bottom"] < 0.6 * keep["bottom"]  # (the underside is unseen: 'drop' takes much of it)
 
 
 def test_photo_colours_replace_the_soups_base_colour():
