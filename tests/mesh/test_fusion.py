@@ -191,3 +191,157 @@ def test_unseen_inside_wall_is_dropped_and_unseen_underside_kept():
     every = unseen_faces(v, f, cams, depths, tol, enclosed_only=False)
     assert low.sum() > 10 and every[low].all()  # unseen ...
     assert not drop[low].any()  # ... but facing open space: kept
+
+
+def test_occlusion_vote_outweighs_one_wrong_ray():
+    """A plane z = 0 seen from above by four cameras; a voxel 0.3 below it is beyond the truncation band of every
+    view (occluded). A fifth view whose depth is wrong (inf: its ray slipped through a gap in the soup) votes +1
+    with weight 1; each occluded view adds -occlusion_weight to the sum only. Known answer: (1 - 4 w) / 1, and -1
+    (solid) without the wrong view. Without the occlusion vote the wrong ray alone would carve the voxel (+1)."""
+    eyes = [[0.3, 0.0, 2.0], [-0.3, 0.0, 2.0], [0.0, 0.3, 2.0], [0.0, -0.3, 2.0], [0.0, 0.0, 2.5]]
+    cams = [look_at(e, target=(0.0, 0.0, -0.3), size=32, focal=32.0) for e in eyes]
+    depths = []
+    for c in cams[:4]:  # the view depth of the plane z = 0 along each pixel's ray
+        ys, xs = np.mgrid[0:32, 0:32] + 0.5
+        ray = np.stack([xs, ys, np.ones_like(xs)], -1) @ np.linalg.inv(c.K).T
+        d_world = ray @ c.world_to_camera[:3, :3]
+        depths.append(((0.0 - c.center[2]) / d_world[..., 2]).astype(np.float32))
+    depths.append(np.full((32, 32), np.inf, np.float32))
+    bounds = np.array([[-0.5, -0.5, -0.5], [0.5, 0.5, 0.5]])
+    res = 20  # voxel 0.05: centres at -0.475 + 0.05 k; the voxel (10, 10, 4) is centred at (0.025, 0.025, -0.275)
+    ijk = (10, 10, 4)
+
+    def fused(views, w):
+        g = fuse_depths([cams[i] for i in views], [depths[i] for i in views], bounds, res, truncation_voxels=2.0,
+                        occlusion_weight=w)
+        return g.sdf[ijk], g.weight[ijk]
+
+    assert fused(range(4), 0.1) == (-1.0, 0.0)  # occluded in every view: solid
+    sdf, weight = fused(range(5), 0.1)
+    assert weight == 1.0 and sdf == pytest.approx(1.0 - 4 * 0.1, abs=1e-6)
+    assert fused(range(5), 0.3)[0] == pytest.approx(-0.2, abs=1e-6)  # enough occluded views: solid again
+    assert fused(range(5), 0.0)[0] == 1.0  # no occlusion vote: the one wrong ray carves it
+
+
+def test_one_wrong_view_does_not_hollow_a_sphere():
+    """The sphere of the first test with one view's depth wrong (nothing seen: inf): the occlusion votes of the 23
+    other views keep the inside solid and the surface one closed sphere."""
+    centre, r = np.zeros(3), 0.6
+    cams = fibonacci_cameras(24)
+    depths = [sphere_depth(c, centre, r) for c in cams]
+    depths[5] = np.full_like(depths[5], np.inf)
+    bounds = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+    grid = fuse_depths(cams, depths, bounds, resolution=32, truncation_voxels=3.0)
+    assert grid.sdf[16, 16, 16] < 0  # the centre stays solid
+    v, f = extract_surface(grid)
+    st = mesh_statistics(v, f)
+    assert st.connected_components == 1 and st.watertight
+    assert np.abs(np.linalg.norm(v, axis=1) - r).max() < 1.5 * grid.voxel
+    no_vote = fuse_depths(cams, depths, bounds, resolution=32, truncation_voxels=3.0, occlusion_weight=0.0)
+    assert no_vote.sdf[16, 16, 16] == 1.0  # the wrong view alone decides the inside: carved
+
+
+def test_streamed_fusion_equals_one_batch_and_holds_one_batch():
+    """fuse_depths takes a generator and integrates it a batch at a time: the field is the one of a single batch,
+    and no more than a batch of depth maps is alive at once (the switch's memory does not grow with the views)."""
+    import weakref
+
+    centre, r = np.array([0.1, 0.0, -0.05]), 0.5
+    cams = fibonacci_cameras(12)
+    bounds = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+    whole = fuse_depths(cams, [sphere_depth(c, centre, r) for c in cams], bounds, resolution=24, max_depth=0.3)
+    alive, most = [0], [0]
+
+    def gone():
+        alive[0] -= 1
+
+    def maps():
+        for c in cams:
+            d = sphere_depth(c, centre, r)
+            alive[0] += 1
+            most[0] = max(most[0], alive[0])
+            weakref.finalize(d, gone)
+            yield d
+
+    one_view = 48 * 48 * 4
+    streamed = fuse_depths(cams, maps(), bounds, resolution=24, max_depth=0.3, batch_bytes=2 * one_view)
+    assert most[0] <= 2  # a generator's maps are dropped once copied into the batch
+    np.testing.assert_allclose(streamed.sdf, whole.sdf, atol=1e-5)
+    np.testing.assert_array_equal(streamed.weight, whole.weight)
+    with pytest.raises(ValueError, match="12 cameras but 11 depth maps"):
+        fuse_depths(cams, (sphere_depth(c, centre, r) for c in cams[:11]), bounds, resolution=24)
+
+
+def test_fill_holes_fills_cracks_and_keeps_background():
+    """A depth ramp (depth = 1 + 0.01 column) with a crack two columns wide and a hole of 2 x 2 pixels inside, an
+    empty band six columns wide, and empty background on the right: with px = 2 the crack and the hole take the
+    depth of their nearest covered pixel, the wide band (wider than the closing reaches) and the background stay
+    empty. Beyond the image border is empty (border_value 0): the crack's ends within px of the border stay open."""
+    from trisplat.train.switch import fill_holes
+
+    H, W = 20, 40
+    depth = np.tile((1.0 + 0.01 * np.arange(W)).astype(np.float32), (H, 1))
+    depth[:, 10:12] = np.inf  # crack
+    depth[5:7, 20:22] = np.inf  # hole
+    depth[:, 25:31] = np.inf  # a band too wide to close
+    depth[:, 34:] = np.inf  # background
+    out = fill_holes(depth, 2)
+    assert np.all(out[2:-2, 10] == np.float32(1.09)) and np.all(out[2:-2, 11] == np.float32(1.12))  # nearest column
+    assert np.all(np.isinf(out[:2, 10:12])) and np.all(np.isinf(out[-2:, 10:12]))
+    assert np.all(np.isfinite(out[5:7, 20:22]))
+    for r, c in [(5, 20), (5, 21), (6, 20), (6, 21)]:  # each takes a covered 4-neighbour's depth (ties: any)
+        near = [depth[r + dr, c + dc] for dr, dc in ((-1, 0), (1, 0), (0, -1), (0, 1)) if np.isfinite(depth[r + dr, c + dc])]
+        assert out[r, c] in near, (r, c, out[r, c], near)
+    assert np.all(np.isinf(out[:, 25:31])) and np.all(np.isinf(out[:, 34:]))
+    covered = np.isfinite(depth)
+    assert np.array_equal(out[covered], depth[covered])  # covered pixels unchanged
+    assert np.array_equal(fill_holes(depth, 0), depth, equal_nan=True)
+    assert np.isinf(fill_holes(depth, 1)[1:-1, 10:12]).sum() == 0  # two columns close with one iteration
+    assert np.isinf(fill_holes(depth, 1)[5:7, 20:22]).sum() == 0
+
+
+def test_fusion_box_is_the_robust_extent_grown_and_cut_to_the_content_box():
+    """1001 values per axis evenly over [0, 1] (y twice, z half as long), the four largest of each axis moved far
+    out (floaters): the 0.5 / 99.5 percentiles are 0.005 / 0.995 of each axis's length, grown by 10% of the size
+    on each side; the floaters do not count. A content box cuts it; a content box that misses it is ignored."""
+    from trisplat.train.switch import fusion_box
+
+    rng = np.random.default_rng(0)
+    base = np.linspace(0.0, 1.0, 1001)
+    base[-4:] = 1000.0
+    pos = np.stack([rng.permutation(base), 2 * rng.permutation(base), 0.5 * rng.permutation(base)], 1)
+    lo, hi = np.array([0.005, 0.010, 0.0025]), np.array([0.995, 1.990, 0.4975])
+    grow = 0.1 * (hi - lo)
+    box = fusion_box(pos, None)
+    np.testing.assert_allclose(box, [lo - grow, hi + grow], atol=1e-9)
+    cut = fusion_box(pos, np.array([[0.2, -5.0, 0.1], [0.8, 5.0, 5.0]]))
+    np.testing.assert_allclose(cut, [[0.2, lo[1] - grow[1], 0.1], [0.8, hi[1] + grow[1], hi[2] + grow[2]]])
+    np.testing.assert_allclose(fusion_box(pos, np.array([[5.0, 5.0, 5.0], [6.0, 6.0, 6.0]])), box)
+
+
+def test_transfer_attributes_weights_neighbours_by_opacity_over_distance():
+    """Two soup vertices on the x axis: A at 0 (opacity 0.8, SH all bands 1), B at 1 (opacity 0.2, SH all bands
+    -1). A point at x = 0.25 takes w_A = 0.8 / 0.25, w_B = 0.2 / 0.75 (normalised) of each; a point on A takes A's;
+    with one neighbour, the nearest's values."""
+    import torch
+
+    from trisplat.scene.model import TriangleScene
+    from trisplat.train.switch import transfer_attributes
+
+    pos = torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.5, 50.0, 0.0]])
+    sh = torch.stack([torch.ones(4, 3), -torch.ones(4, 3), torch.zeros(4, 3)])
+    opac = torch.tensor([0.8, 0.2, 0.5])
+    scene = TriangleScene(pos, sh, torch.logit(opac), torch.tensor([[0, 1, 2]], dtype=torch.int32), 0.0)
+    pts = np.array([[0.25, 0.0, 0.0], [0.0, 0.0, 0.0], [0.9, 0.0, 0.0]])
+    out_sh, out_op = transfer_attributes(scene, pts, neighbours=2)
+    wa, wb = 0.8 / 0.25, 0.2 / 0.75
+    a, b = wa / (wa + wb), wb / (wa + wb)
+    assert out_sh.shape == (3, 4, 3)
+    np.testing.assert_allclose(out_sh[0].numpy(), np.full((4, 3), a - b), rtol=1e-5)
+    assert float(out_op[0]) == pytest.approx(0.8 * a + 0.2 * b, rel=1e-5)
+    np.testing.assert_allclose(out_sh[1].numpy(), np.ones((4, 3)), atol=1e-6)  # on A: A's values
+    wa, wb = 0.8 / 0.9, 0.2 / 0.1  # near B, B's weight wins although A is more opaque
+    assert float(out_sh[2, 0, 0]) == pytest.approx((wa - wb) / (wa + wb), rel=1e-5)
+    one_sh, one_op = transfer_attributes(scene, pts, neighbours=1)
+    np.testing.assert_allclose(one_sh[:, 0, 0].numpy(), [1.0, 1.0, -1.0])
+    np.testing.assert_allclose(one_op.numpy(), [0.8, 0.8, 0.2], rtol=1e-6)

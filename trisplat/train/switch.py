@@ -244,8 +244,8 @@ def _visible(cam, depth: np.ndarray, points: np.ndarray, tolerance: float):
 def seen_counts(cameras: Sequence, depths: Sequence, points: np.ndarray, tolerance: float) -> np.ndarray:
     """Number of views that see each of `points` [P,3] (see _visible) [P]."""
     cnt = np.zeros(len(points))
-    for cam, depth in zip(cameras, depths):
-        cnt[_visible(cam, depth, points, tolerance)[0]] += 1
+    for n, cam in enumerate(cameras):
+        cnt[_visible(cam, depths[n], points, tolerance)[0]] += 1
     return cnt
 
 
@@ -257,13 +257,16 @@ def image_colors(cameras: Sequence, images: Iterable, depths: Sequence, points: 
     loads each photo when asked: only one is held at a time)."""
     acc = np.zeros((len(points), 3))
     cnt = np.zeros(len(points))
-    for cam, img, depth in zip(cameras, images, depths):
-        img = np.asarray(img)
+    photos = iter(images)
+    for n, cam in enumerate(cameras):
+        # (not zip: its reused result tuple would hold the previous photo while the next one loads)
+        depth = depths[n]
+        img = np.asarray(next(photos))
         idx, row, col = _visible(cam, depth, points, tolerance)
         rgb = img[row, col, :3].astype(np.float64)
         acc[idx] += rgb / 255.0 if img.dtype == np.uint8 else rgb
         cnt[idx] += 1
-        del img
+        del img, depth
     out = acc / np.maximum(cnt, 1)[:, None]
     return out, cnt
 
