@@ -2,12 +2,14 @@
 
 A synthetic COLMAP capture of VIEWS photos of WIDTH x HEIGHT pixels (default 300 x 4000x3000, a phone's 12 MP) is
 written (one noise JPEG, hard-linked under every view's name: each is decoded again at its turn) and loaded with the
-real data loader; a soup (the demo objects, a few thousand triangles, in the capture's normalised frame) is rendered
-for every camera by the opaque z-buffer renderer (`trisplat.render.hard`, a cheap stand-in for the soft renderer:
-only its face ids are used), and `soup_to_surface` runs with the trainer's settings (resolution capped by
-surface_resolution and max_voxels, the photos' colours through the loader's `load_image`, unseen faces
-'drop_enclosed', empty pixels unknown as for photos without alpha). Everything after the render is the real path:
-surface depth, hole filling, streamed fusion, depth store, marching cubes, decimation, photo colours.
+real data loader. The soup is the synthetic room (`trisplat.synth.room`: walls, floor, ceiling, objects; every pixel
+covered, as in a real photo), in the capture's normalised frame, seen from a ring of cameras inside it. The render
+is a cheap stand-in: the opaque z-buffer renderer (`trisplat.render.hard`) at 1/RENDER_STEP of the resolution, its
+face ids repeated to full size (only the face ids are used). Everything after the render is the trainer's path
+(`_connect_fusion` for photos without alpha): `soup_to_surface` in the inner box with the trainer's settings
+(resolution capped by surface_resolution and max_voxels, unseen faces 'drop_enclosed', empty pixels unknown, the
+photos' colours through the loader's `load_image`): surface depth at full resolution, hole filling, streamed
+fusion, depth store, marching cubes, decimation, photo colours.
 
 Reported: the process's peak resident set size before and after the switch (getrusage), the switch's own peak
 above its start (psutil samples every 0.2 s), wall time per stage, the grid, and how many depth maps went to disk.
@@ -72,17 +74,19 @@ class _RssSampler:
         return max(self.peak, self._proc.memory_info().rss / 2**20)
 
 
-def write_capture(out: Path, views: int, width: int, height: int, seed: int = 0) -> Path:
-    """A COLMAP capture of `views` ring cameras around the demo objects (radius 3, fov 60 degrees), all photos the
-    same noise JPEG (hard links, or copies where links fail). Returns `out`."""
+RENDER_STEP = 8  # the stand-in render's pixel step (face ids repeated to full size)
+
+
+def write_capture(out: Path, views: int, width: int, height: int, seed: int = 0) -> list:
+    """A COLMAP capture of `views` ring cameras inside the synthetic room (radius 1.6, height 1.1, fov 70
+    degrees), all photos the same noise JPEG (hard links, or copies where links fail). Returns the room mesh."""
     from PIL import Image
 
-    from trisplat.synth.room import ring_cameras, write_colmap_text
-    from trisplat.synth.scenes import demo_mesh
+    from trisplat.synth.room import ring_cameras, room_mesh, write_colmap_text
 
     (out / "images").mkdir(parents=True, exist_ok=True)
     cams = [replace(c, name=c.name.replace(".png", ".jpg"))  # a phone's photos: JPEG
-            for c in ring_cameras(views, 3.0, 1.5, (0.0, 0.0, 0.3), width, height, 60.0, jitter=0.5, seed=seed)]
+            for c in ring_cameras(views, 1.6, 1.1, (0.0, 0.0, 0.3), width, height, 70.0, jitter=0.15, seed=seed)]
     rng = np.random.default_rng(seed)
     small = rng.integers(0, 256, size=(height // 16 + 1, width // 16 + 1, 3), dtype=np.uint8)
     photo = Image.fromarray(small).resize((width, height), Image.BILINEAR)
@@ -95,24 +99,22 @@ def write_capture(out: Path, views: int, width: int, height: int, seed: int = 0)
                 os.link(first, target)
             except OSError:
                 shutil.copyfile(first, target)
-    mesh = demo_mesh(seed=seed)
-    pts = np.asarray(mesh.sample(2000, return_index=False))
+    mesh = room_mesh(seed=seed)
+    pts = np.asarray(mesh.sample(3000, return_index=False))
     write_colmap_text(out, cams, pts, np.full((len(pts), 3), 0.5))
-    mesh.export(out / "soup_mesh.ply")
-    return out
+    return mesh
 
 
 def main(argv: list[str]) -> int:
     args = tyro.cli(SwitchMemoryArgs, args=argv, prog="trisplat bench switch-memory", description=__doc__,
                     config=CLI_STYLE)
     import torch
-    import trimesh
 
     from trisplat.data import load_dataset
     from trisplat.data.normalize import apply_to_points
     from trisplat.render.hard import rasterize_hard
     from trisplat.scene.model import TriangleScene
-    from trisplat.train.switch import SurfaceConfig, soup_to_surface
+    from trisplat.train.switch import SurfaceConfig, inner_box, soup_to_surface
 
     table = BenchTable("switch-memory", [
         "views", "photo", "grid", "voxels M", "depth maps on disk", "RSS before MiB", "switch peak MiB",
@@ -124,11 +126,10 @@ def main(argv: list[str]) -> int:
         capture = Path(tmp.name) / "capture"
     try:
         t0 = time.perf_counter()
-        write_capture(capture, args.views, args.width, args.height)
+        mesh = write_capture(capture, args.views, args.width, args.height)
         print(f"capture: {args.views} views of {args.width}x{args.height} in {capture} "
               f"({time.perf_counter() - t0:.1f} s)", flush=True)
         data = load_dataset(capture, downscale=1)
-        mesh = trimesh.load(capture / "soup_mesh.ply", process=False)
         pos = apply_to_points(data.normalization, np.asarray(mesh.vertices, np.float64))
         rgb = np.asarray(mesh.visual.vertex_colors, np.float32)[:, :3] / 255.0
         from trisplat.scene.sh import rgb_to_sh_dc
@@ -138,12 +139,25 @@ def main(argv: list[str]) -> int:
                              torch.full((len(pos),), 4.0), torch.as_tensor(mesh.faces, dtype=torch.int32), 0.0)
         train = [int(i) for i in data.train_indices]
         cams = [data.cameras[i] for i in train]
+        step = RENDER_STEP
+
+        class _Render:  # what soup_to_surface reads of a RenderOutput
+            def __init__(self, face_id):
+                self.face_id = face_id
 
         def render(n):
             c = cams[n]
-            return rasterize_hard(soup.positions, soup.faces, torch.as_tensor(rgb),
-                                  torch.as_tensor(c.world_to_camera, dtype=torch.float32),
-                                  torch.as_tensor(c.K, dtype=torch.float32), c.width, c.height)
+            K = np.asarray(c.K, np.float64).copy()
+            K[:2] /= step  # the same view at 1/step of the resolution (pixel centres: a sub-pixel offset)
+            w, h = -(-c.width // step), -(-c.height // step)
+            out = rasterize_hard(soup.positions, soup.faces, torch.as_tensor(rgb),
+                                 torch.as_tensor(c.world_to_camera, dtype=torch.float32),
+                                 torch.as_tensor(K, dtype=torch.float32), w, h)
+            fid = out.face_id.numpy().repeat(step, 0).repeat(step, 1)[: c.height, : c.width]
+            if n % 25 == 0:
+                print(f"view {n}: RSS {sampler._proc.memory_info().rss / 2**20:.0f} MiB, peak {sampler.peak:.0f} MiB "
+                      f"({time.perf_counter() - t0:.0f} s)", flush=True)
+            return _Render(torch.from_numpy(np.ascontiguousarray(fid)))
 
         side = max(max(c.width, c.height) for c in cams)
         # the trainer's settings for a capture without alpha (trisplat/train/trainer.py, _connect_fusion)
@@ -153,7 +167,7 @@ def main(argv: list[str]) -> int:
         sampler = _RssSampler().start()
         start_rss = sampler._proc.memory_info().rss / 2**20
         t0 = time.perf_counter()
-        surface, rep = soup_to_surface(soup, cams, render, None, scfg,
+        surface, rep = soup_to_surface(soup, cams, render, inner_box(), scfg,
                                        lambda m: print(f"switch: {m}", flush=True),
                                        images=lambda n: data.load_image(train[n]))
         total = time.perf_counter() - t0
@@ -165,7 +179,8 @@ def main(argv: list[str]) -> int:
                   round(peak_rss_mb()), round(rep.render_s, 1), round(rep.fuse_s, 1), round(rep.mesh_s, 1),
                   round(total, 1), surface.num_faces)
         table.notes.append(f"Process peak RSS before the switch (capture written, loader and soup ready): "
-                           f"{before:.0f} MiB. Render: opaque z-buffer stand-in; depth maps kept in memory up to "
+                           f"{before:.0f} MiB. Render: opaque z-buffer stand-in at 1/{step} resolution, face ids "
+                           f"repeated; depth maps kept in memory up to "
                            f"{scfg.depth_memory_mb:.0f} MiB, the rest in TMPDIR. Notes: {'; '.join(rep.notes)}")
     finally:
         if tmp is not None:
