@@ -47,11 +47,12 @@ def retrieval_similarity(descriptors: list[np.ndarray], words: int = 256, sample
         return np.zeros((n, n))
     pool = np.concatenate(pool)
     k = int(min(words, max(2, len(pool) // 20)))
-    # the vocabulary: k-means (scipy's Lloyd iterations from k-means++ seeds) of the pooled descriptors; an empty
-    # cluster keeps its seed (it then simply collects no words)
+    # the vocabulary: k-means of the pooled descriptors (scipy's Lloyd iterations, seeded with random distinct
+    # descriptors: scipy's k-means++ seeding costs O(k^2 n), minutes here); an empty cluster keeps its seed (it then
+    # simply collects no words)
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=".*clusters is empty.*")
-        centres, _ = kmeans2(pool, k, iter=iters, minit="++", seed=rng, missing="warn")
+        centres, _ = kmeans2(pool, k, iter=iters, minit="points", seed=rng, missing="warn")
     hist = np.zeros((n, k))
     for i, f in enumerate(feats):
         if len(f):
