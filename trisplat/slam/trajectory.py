@@ -6,6 +6,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from trisplat.io.atomic import atomic_write_text
 from trisplat.sfm.align import umeyama
 
 
@@ -21,10 +22,7 @@ def write_tum_trajectory(path: str | Path, stamps, c2ws) -> Path:
     for t, T in zip(stamps, c2ws):
         q = Rotation.from_matrix(T[:3, :3]).as_quat(canonical=True)  # x, y, z, w (scalar last, as TUM), w >= 0
         lines.append(f"{t:.6f} " + " ".join(f"{x:.9f}" for x in (*T[:3, 3], *q)))
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text("\n".join(lines) + "\n")
-    tmp.replace(path)
-    return path
+    return atomic_write_text(path, "\n".join(lines) + "\n")
 
 
 def read_tum_trajectory(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
