@@ -144,3 +144,30 @@ def test_photos_without_alpha_get_their_mean_colour_behind_the_triangles(room, t
     run_training(args)
     saved = json.loads((tmp_path / "run" / layout.CONFIG).read_text())
     assert np.allclose(saved["background"], bg, atol=1e-3)
+
+
+def test_coverage_counts_the_photos_content_not_an_object_captures_background(tmp_path):
+    """An object capture's background (alpha 0) is no hole: the true surface covers all of its test views'
+    content. Fails on the first coverage rule, which divided by every pixel (lego 'covered' 30%)."""
+    import trimesh
+
+    from trisplat.data import load_dataset
+    from trisplat.scene.model import TriangleScene
+    from trisplat.strategy import ops
+    from trisplat.synth.blender import write_blender_scene
+
+    mesh = trimesh.creation.icosphere(subdivisions=3, radius=0.5)
+    capture = write_blender_scene(tmp_path / "capture", mesh, n_train=4, n_test=3, width=48, height=48,
+                                  samples_per_pixel=1, n_points=200)
+    cfg = make_config("fast", steps=10, checkpoint_every_s=1e9, texture_size=0)
+    data = load_dataset(capture, background=list(cfg.background))
+    trainer = Trainer(cfg, data, tmp_path / "run", show_progress=False, data_path=str(capture))
+    N = np.asarray(data.normalization)
+    verts = ((N[:3, :3] @ mesh.vertices.T).T + N[:3, 3]).astype(np.float32)
+    grey = np.full((len(verts), 3), 0.5, np.float32)
+    ops.replace_scene(trainer.ts, TriangleScene.from_rgb(verts, mesh.faces, grey, opacity=0.9999))
+    assert trainer.test_coverage() > 0.98
+    # half the faces gone at random: a pixel is a hole where both its front and back face are (1/4 of it)
+    half = np.random.default_rng(0).random(len(mesh.faces)) < 0.5
+    ops.replace_scene(trainer.ts, TriangleScene.from_rgb(verts, mesh.faces[half], grey, opacity=0.9999))
+    assert 0.65 < trainer.test_coverage() < 0.85
