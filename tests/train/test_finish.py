@@ -139,7 +139,7 @@ def failed_run(sphere, tmp_path_factory):
     mp = pytest.MonkeyPatch()
     mp.setattr(switch_mod, "soup_to_surface", out_of_memory)
     try:
-        tr = _trainer(sphere, run, steps=STEPS)
+        tr = _trainer(sphere, run, steps=STEPS, connect_at=SURFACE_SWITCH_AT)  # (explicit: the old full had none)
         real_step = tr.train_step
 
         def step():
