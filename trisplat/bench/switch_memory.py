@@ -36,7 +36,7 @@ class SwitchMemoryArgs:
     """Peak memory of the switch on a large synthetic capture."""
 
     views: int = 300
-    """training views (photos)"""
+    """photos, all fused (the trainer would fuse its training views, 7 of every 8)"""
     width: int = 4000
     """photo width, pixels"""
     height: int = 3000
@@ -137,8 +137,10 @@ def main(argv: list[str]) -> int:
         soup = TriangleScene(torch.as_tensor(pos, dtype=torch.float32),
                              rgb_to_sh_dc(torch.as_tensor(rgb))[:, None, :].contiguous(),
                              torch.full((len(pos),), 4.0), torch.as_tensor(mesh.faces, dtype=torch.int32), 0.0)
-        train = [int(i) for i in data.train_indices]
-        cams = [data.cameras[i] for i in train]
+        # every photo is fused (the trainer fuses its training views: 7 of every 8 photos of a capture without
+        # splits), so VIEWS photos are VIEWS views through the switch
+        train = list(range(len(data.cameras)))
+        cams = list(data.cameras)
         step = RENDER_STEP
 
         class _Render:  # what soup_to_surface reads of a RenderOutput
