@@ -61,7 +61,10 @@ class SurfaceConfig:
     empty_is_free: bool = True
     """a pixel the soup leaves empty is free space all along its ray (background: an object capture). False for
     scenes seen from inside (a SLAM map of a room): an empty pixel is a hole in the map, unknown, and carving along
-    it would cut through the walls behind."""
+    it would cut through the walls behind. The trainer sets it from the photos: free only when they have alpha
+    (a background to be free). Whether the cameras lie inside the soup's hull is not used: a real photo of an object
+    from outside has no free pixel either (every pixel sees something), and floaters around an object would put
+    its cameras inside. tests/mesh/test_room_walls.py: with True a room seen from inside loses its walls."""
     unseen_faces: Literal["keep", "drop_enclosed", "drop"] = "keep"
     """faces no view saw (every vertex farther than the truncation from each view's surface depth): bounding unseen
     space leaves the far side of a shell behind what the views measured. 'drop_enclosed' drops those whose outward
