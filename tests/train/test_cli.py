@@ -32,3 +32,17 @@ def test_missing_capture_is_named(tmp_path, capsys):
 def test_resume_without_checkpoint(tmp_path):
     with pytest.raises(FileNotFoundError, match="nothing to resume"):
         cmd.prepare_run_dir(tmp_path / "run", resume=True, force=False)
+
+
+def test_final_line_puts_the_files_score_first_and_says_when_not_to_trust_it():
+    from trisplat.commands.train import final_lines
+
+    m = {"psnr": 27.44, "file_psnr": 25.99, "ssim": 0.941, "faces": 274803, "vertices": 141758, "connected": True,
+         "coverage": 0.999, "health": {"ok": True, "problems": []}}
+    line = final_lines(m, 1800.0, "runs/lego")[0]
+    assert line.startswith("done in 30.0 min: mesh.glb 25.99 dB as a glTF viewer shows it (the model: 27.44 dB)")
+    del m["file_psnr"]  # no file scored (e.g. --output soup without a GLB): the model's score, said as such
+    assert "test PSNR 27.44 dB (hard)" in final_lines(m, 60.0, "r")[0]
+    m["health"] = {"ok": False, "problems": ["the mesh covers 95.0% of the test pixels (holes; below 99%)"]}
+    lines = final_lines(m, 60.0, "r")
+    assert "NOT trustworthy" in lines[0] and lines[1] == "  problem: " + m["health"]["problems"][0]
