@@ -359,7 +359,7 @@ def test_minutes_progress_bar_never_jumps_or_goes_back(tiny_scene, tmp_path, mon
         def set_postfix(self, *a, **k):
             pass
 
-        def write(self, *a):
+        def write(self, *a, **k):
             pass
 
         def close(self):
