@@ -38,6 +38,7 @@ def test_levels_are_decimated_files_scored_like_any_file(sphere_run):
     assert (out / LOD_PLOT).stat().st_size > 1000
     page = (sphere_run / "eval_test" / "report.html").read_text()
     assert page.count("<div id='lod'>") == 1 and f"{points[1].faces} (asked 40)" in page
+    assert f"glTF spec render, {len(evaluate_run(sphere_run, 'test', 'hard', report=False).views)} views" in page
     evaluate_lod(sphere_run, [100], texture_size=0, out_dir=out, show_progress=False)  # replaces the section
     page = (sphere_run / "eval_test" / "report.html").read_text()
     assert page.count("<div id='lod'>") == 1 and "(asked 100)" in page and "(asked 40)" not in page

@@ -27,6 +27,7 @@ class LodPoint:
     lpips: float | None
     seconds: float  # export (decimation + texture fit) and scoring
     file: str
+    views: int = 0  # test views scored (all of the split unless max_views)
 
 
 def evaluate_lod(run_dir: str | Path, faces: Sequence[int], texture_size: int | None = None, split: str = "test",
@@ -71,7 +72,7 @@ def evaluate_lod(run_dir: str | Path, faces: Sequence[int], texture_size: int | 
         points.append(LodPoint(faces_requested=n, faces=int(m.extra["faces"]), texture_size=int(tex),
                                glb_bytes=glb.stat().st_size, psnr=float(m.psnr), ssim=float(m.ssim),
                                lpips=None if m.lpips is None else float(m.lpips),
-                               seconds=round(time.perf_counter() - t0, 2), file=str(glb)))
+                               seconds=round(time.perf_counter() - t0, 2), file=str(glb), views=len(m.views)))
     atomic_write_text(out / LOD_METRICS, json.dumps({"split": split, "levels": [asdict(p) for p in points]}, indent=2))
     plot = plot_lod(points, out / LOD_PLOT)
     page = run.path / f"eval_{split}" / "report.html"
@@ -113,7 +114,9 @@ def add_lod_section(page: str | Path, points: Sequence[LodPoint], plot: Path | N
     from trisplat.eval.report import _fmt
 
     page = Path(page)
-    rows = ["<div id='lod'><h2>Level of detail (files, glTF spec render)</h2><table id='lod-scores'><tr>"
+    views = sorted({p.views for p in points})
+    rows = [f"<div id='lod'><h2>Level of detail (files, glTF spec render, {'/'.join(map(str, views))} views)</h2>"
+            "<table id='lod-scores'><tr>"
             "<th>faces</th><th>texture</th><th>GLB (MB)</th><th>PSNR (dB)</th><th>SSIM</th><th>LPIPS</th></tr>"]
     for p in points:
         what = "all (mesh.glb)" if p.faces_requested is None else f"{p.faces} (asked {p.faces_requested})"
