@@ -111,7 +111,7 @@ def add_lod_section(page: str | Path, points: Sequence[LodPoint], plot: Path | N
     import html
     import os
 
-    from trisplat.eval.report import _fmt
+    from trisplat.eval.report import _fmt, insert_section
 
     page = Path(page)
     views = sorted({p.views for p in points})
@@ -133,9 +133,6 @@ def add_lod_section(page: str | Path, points: Sequence[LodPoint], plot: Path | N
     start = text.find("<div id='lod'>")
     if start >= 0:  # a second `eval --lod` replaces the first one's section
         end = text.find("</div>", start) + len("</div>")
-        text = text[:start] + section + text[end:]
-    else:
-        marker = "<h2>Metrics</h2>"
-        text = text.replace(marker, section + marker, 1) if marker in text else text.replace("</body>", section + "</body>")
-    atomic_write_text(page, text)
-    return page
+        atomic_write_text(page, text[:start] + section + text[end:])
+        return page
+    return insert_section(page, section, text)

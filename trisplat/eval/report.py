@@ -373,9 +373,15 @@ def add_file_scores(page: str | Path, model: SplitMetrics, file: SplitMetrics, f
     table.append("</table>")
     if file_report:
         table.append(f"<p><a href='{e(file_report)}'>the file's own report</a> (its renders beside the photos)</p>")
-    text = page.read_text()
+    return insert_section(page, "\n".join(table))
+
+
+def insert_section(page: str | Path, section: str, text: str | None = None) -> Path:
+    """Write report.html `page` with `section` (HTML) inserted before its per-view metrics table (at the end of the
+    body when it has none). text: the page's HTML to insert into, when the caller already edited it."""
+    page = Path(page)
+    text = page.read_text() if text is None else text
     marker = "<h2>Metrics</h2>"
-    text = text.replace(marker, "\n".join(table) + marker, 1) if marker in text else text.replace(
-        "</body>", "\n".join(table) + "</body>")
+    text = text.replace(marker, section + marker, 1) if marker in text else text.replace("</body>", section + "</body>")
     atomic_write_text(page, text)
     return page
