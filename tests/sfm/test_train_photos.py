@@ -96,3 +96,41 @@ def test_train_on_photos_checks_out_and_device_before_structure_from_motion(tmp_
         assert main(["train", str(photos), "--out", str(tmp_path / "new"), *bad]) == 1
         assert said in capsys.readouterr().err
     assert not (tmp_path / "new").exists() and not (tmp_path / "xdg").exists()
+
+
+def test_two_runs_on_the_same_photos_pose_them_once(tmp_path, monkeypatch):
+    """A second run started while the first is still posing the photos waits for it and reuses its capture; it does
+    not run structure from motion into the same cache folder beside it."""
+    import threading
+    import time
+
+    import trisplat.sfm.cache as cache
+
+    photos = _photos(tmp_path / "photos")
+    calls: list[float] = []
+
+    class Report:
+        registered, n_input, points, mean_reprojection_error_px = [0, 1, 2], 3, 10, 0.5
+
+    def slow_poses(source, out, options, progress=True, log=None):
+        calls.append(time.monotonic())
+        (out / WORK).mkdir(parents=True, exist_ok=True)
+        time.sleep(0.5)
+        (out / REPORT).write_text("{}")
+        return Report()
+
+    monkeypatch.setattr(cache, "run_poses", slow_poses)
+    logs: list[list[str]] = [[], []]
+    results: list = [None, None]
+
+    def run(i):
+        results[i] = cache.posed_capture(photos, cache_root=tmp_path / "cache", progress=False, log=logs[i].append)
+
+    first = threading.Thread(target=run, args=(0,))
+    first.start()
+    time.sleep(0.1)
+    run(1)
+    first.join()
+    assert len(calls) == 1
+    assert results[0] == results[1] == cache_folder(photos, tmp_path / "cache")
+    assert "waiting" in logs[1][0] and "earlier" in logs[1][-1]

@@ -45,9 +45,29 @@ def posed_capture(source: Path, options: PosesOptions | None = None, cache_root:
                   progress: bool = True, log: Callable[[str], None] | None = None) -> Path:
     """A COLMAP capture of the photos (or video) `source`: the cached one when its fingerprint still matches,
     else `run_poses` into the cache folder first. Returns the capture folder."""
+    from filelock import FileLock, Timeout  # torch's own dependency
+
     say = log or (lambda msg: print(msg, file=sys.stderr, flush=True))
     opts = options or PosesOptions()
     out = cache_folder(source, cache_root)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    # two runs on the same photos at once: the second waits for the first's poses instead of running structure from
+    # motion into the same folder beside it (where each would delete the other's files)
+    lock = FileLock(str(out) + ".lock")
+    try:
+        lock.acquire(timeout=0)
+    except Timeout:
+        say(f"another trisplat run is computing the poses of {source} into {out}: waiting for it to finish "
+            f"(lock {lock.lock_file})")
+        lock.acquire()
+    try:
+        return _posed_capture_locked(source, opts, out, progress, log, say)
+    finally:
+        lock.release()
+
+
+def _posed_capture_locked(source: Path, opts: PosesOptions, out: Path, progress: bool,
+                          log: Callable[[str], None] | None, say: Callable[[str], None]) -> Path:
     want = fingerprint(source, opts)
     stamp = out / WORK / FINGERPRINT
     if (out / REPORT).is_file() and stamp.is_file():
