@@ -46,6 +46,29 @@ class TrainArgs:
     device: Literal["cpu", "cuda", "auto"] = "cpu"
     """cpu: the Numba kernels; cuda: the tensors on the GPU and the Warp renderer (gpu extra and a CUDA build of
     torch; not yet run end to end on a GPU, see docs/benchmarks_gpu.md); auto: cuda when both are there."""
+    blocks: str = "1"
+    """Partitioned training (issue 28): 'auto' or N cuts the scene's ground plane into blocks with overlapping
+    margins, trains each block as a Ray task (needs the cluster extra: pip install -e ".[cluster]") and merges them
+    into one connected surface in OUT. 1: one ordinary run."""
+    cluster: str = "local"
+    """Where --blocks runs: 'local' (Ray on this machine; RAY_ADDRESS, when set, names an existing cluster), or the
+    address of an existing Ray cluster (ray://HOST:PORT, or a node's HOST:PORT)."""
+    plan: bool = False
+    """Dry run of --blocks: print the blocks, their views and their estimated memory and time, and stop."""
+    shared: str | None = None
+    """Folder (every Ray node must see it) or fsspec URL (s3://..., gs://...) for the blocks' run folders; default
+    OUT/blocks."""
+    block_margin: float = 0.2
+    """Overlap margin of a block: its cell grown by this fraction of its size on every inner side."""
+    block_visibility: float = 0.25
+    """A view joins a block whose expanded cell holds at least this fraction of the sparse points it sees (or its
+    camera)."""
+    cpus_per_block: int = 1
+    """CPUs (Ray num_cpus, and threads) of each block's task."""
+    max_retries: int = 3
+    """Ray retries of a block whose worker dies; each retry resumes from the block's checkpoint."""
+    chunk_steps: int = 50
+    """A block writes a checkpoint and its progress line every this many steps."""
     config: Annotated[TrainConfig, tyro.conf.arg(name="")] = field(default_factory=TrainConfig)
 
 
@@ -298,6 +321,10 @@ def main(argv: list[str]) -> int:
     # FlagCreatePairsOff: a preset may turn a flag either way (`--no-final-max-weight-pass`, `--final-max-weight-pass`)
     args = tyro.cli(TrainArgs, args=argv, default=default, description=help_description(TrainArgs.__doc__), prog=PROG,
                     config=(tyro.conf.OmitArgPrefixes, tyro.conf.HelptextFromCommentsOff))
+    from trisplat.blocks.train import blocks_requested
+
+    if blocks_requested(args.blocks) or args.plan:  # partitioned training (trisplat.blocks); --blocks 1: one run
+        return _train_blocks(args, argv)
     try:
         check_cheap_options(args)  # a typo costs nothing, not minutes of structure from motion
         args = pose_plain_photos(args)
@@ -312,6 +339,25 @@ def main(argv: list[str]) -> int:
     return 0  # the run finished and wrote its files; whether to trust them is metrics.json's `health`
 
 
+def _train_blocks(args: TrainArgs, argv: list[str]) -> int:
+    """--blocks auto|N (or --plan): trisplat.blocks.train; without Ray installed it stops at once, naming the
+    install command."""
+    from trisplat.blocks.run_ray import MissingRay
+    from trisplat.blocks.train import train_in_blocks
+
+    try:
+        result = train_in_blocks(args, explicit_fields(argv))
+    except MissingRay as exc:
+        print(f"trisplat train: {exc}", file=sys.stderr)
+        return 2
+    except FileExistsError as exc:
+        print(f"trisplat train: {exc}", file=sys.stderr)
+        return 1
+    for line in final_lines(result.metrics, result.wall_s, result.run_dir):
+        print(line)
+    return 0
+
+
 def final_lines(m: dict, wall_s: float, run_dir) -> list[str]:
     """What a finished run says last: its verdict, the scores of what the user gets, the shape of the result, and
     one line per problem or recovery (metrics.json's `health`)."""
@@ -321,7 +367,8 @@ def final_lines(m: dict, wall_s: float, run_dir) -> list[str]:
     health = m.get("health") or {"ok": True, "problems": []}
     what = "done" if health["ok"] else "finished, but the result is NOT trustworthy"
     shape = result_shape(m)
-    far = f" + a far field of {m['far_field_faces']} soup faces" if m.get("far_field_faces") else ""
+    far = (f" + a far-field layer of {m['far_field_faces']} faces (soup beyond the inner box, background sphere)"
+           if m.get("far_field_faces") else "")
     cov = f", {100 * m['coverage']:.1f}% of test pixels covered" if m.get("coverage") is not None else ""
     # what a user gets is the file: its score comes first when there is one (an unlit file cannot hold the
     # model's view-dependent colour; lego at 30 min: model 27.4 dB, its SH band 0 alone 26.6, mesh.glb 26.0)

@@ -110,8 +110,10 @@ class Trainer:
             from trisplat.train.exposure import Exposure
 
             self.exposure = Exposure(len(data.cameras), cfg.lr_exposure, train_indices=data.train_indices)
-        self.far_faces = 0  # after the switch of a capture without a content box: the far-field soup faces, kept as
-        # the last rows of the face table (their vertices the last vertex rows) behind the connected surface
+        self.far_faces = 0  # after the switch of a capture without a content box: the far-field layer (the soup beyond
+        # the inner box, then the background sphere), kept as the last rows of the face table (their vertices the last
+        # vertex rows) behind the connected surface
+        self.background_faces = 0  # of which the background sphere's (trisplat.scene.background; the very last rows)
         self._last_prune = self._last_densify = self._last_refine = -(10**9)
         self.init_report = None  # what the initialisation did (when this trainer made the initial triangles)
         self.run_dir.mkdir(parents=True, exist_ok=True)
@@ -150,6 +152,7 @@ class Trainer:
                 "last_prune": self._last_prune, "last_densify": self._last_densify, "last_refine": self._last_refine,
                 "lr_scale": self.lr_scale, "rollbacks": self.rollbacks, "failed_step": self._failed_step,
                 "connected": self.connected, "switch_failed": self.switch_failed, "far_faces": self.far_faces,
+                "background_faces": self.background_faces,
                 "switch_failure": self.switch_failure, "switched_p": self.switched_p,
                 "health": self.health.to_dict(),
                 "exposure": None if self.exposure is None else self.exposure.state(),
@@ -173,6 +176,7 @@ class Trainer:
         self.switched_p = None if switched_p is None else float(switched_p)
         self._sigma_cfg = None
         self.far_faces = int(ckpt["extra"].get("far_faces", 0))
+        self.background_faces = int(ckpt["extra"].get("background_faces", 0))
         self.health = RunHealth.from_dict(ckpt["extra"].get("health"))
         if self.exposure is not None and ckpt["extra"].get("exposure") is not None:
             from trisplat.train.exposure import Exposure
@@ -405,7 +409,7 @@ class Trainer:
         failure noted: a resumed run replays the same soup steps and does not try the same switch again; a
         --resume with another --connect-at tries again there, --resume --output soup finishes as a soup)."""
         self.ts = restore_trainable(soup)
-        self.connected, self.far_faces = False, 0
+        self.connected, self.far_faces, self.background_faces = False, 0, 0
         error = f"{type(exc).__name__}: {str(exc).strip() or 'no message'}"
         self.switch_failed = True
         self.switch_failure = {"step": self.step, "progress": self.clock.p(self.step),
@@ -478,12 +482,24 @@ class Trainer:
             surface = append_scene(surface, sub_scene(soup, far))
             report.notes.append(f"{int(far.sum())} soup faces outside the inner box kept as the far field")
         self.far_faces = int(far.sum())
+        if not masked:
+            # behind it all, a background sphere coloured from the photos closes the gaps (trisplat.scene.background)
+            from trisplat.scene.background import background_radius, background_sphere
+
+            radius = background_radius(soup)
+            sky = background_sphere(radius, [self.data.cameras[i] for i in train],
+                                    lambda n: self.data.load_image(train[n]), cfg.background, soup.sh_degree,
+                                    surface.opacity_floor)
+            surface = append_scene(surface, sky)
+            self.far_faces += sky.num_faces
+            self.background_faces = sky.num_faces
+            report.notes.append(f"a background sphere of {sky.num_faces} faces at radius {radius:.2f}")
         ops.replace_scene(self.ts, surface)
         self.connected = True
         self._log({"step": self.step, "wall_s": round(self.wall_s, 3), "switch": report.to_dict(),
                    "far_faces": self.far_faces})
         if say:
-            say(report.summary() + (f"; far field: {self.far_faces} soup faces" if self.far_faces else ""))
+            say(report.summary() + (f"; far-field layer: {self.far_faces} faces" if self.far_faces else ""))
 
     def _rollback(self) -> None:
         """Back to the last good state with half the learning rates. The scale keeps halving over repeated
@@ -766,6 +782,7 @@ class Trainer:
 
         coverage = self.test_coverage()
         extra = {"coverage": coverage, "switch_s": self.switch_s, "far_field_faces": self.far_faces,
+                 "background_faces": self.background_faces,
                  "exposure": None if self.exposure is None else self.exposure.summary(),
                  "history_faces_peak": self.health.peak_faces}
         if self.far_faces:
