@@ -6,7 +6,7 @@ import pytest
 from conftest import shared_data
 from PIL import Image
 
-from trisplat.data.rgbd_stream import downscale_depth, load_frame, open_stream, read_sevenscenes, read_tum
+from trisplat.data.rgbd_stream import detect_stream_format, downscale_depth, load_frame, open_stream, read_sevenscenes, read_tum
 
 
 def _write_pair(color_path, depth_path, w=8, h=6, depth_raw=1000, depth_shape=None):
@@ -123,3 +123,51 @@ def test_real_sevenscenes_and_redwood():
     assert 0.3 < np.median(depth[depth > 0]) < 4.0
     r = open_stream(shared_data("icl_rgbd"))
     assert r.format == "redwood" and r.has_reference and len(r) > 1
+
+
+def test_eth3d_slam_layout_reads_calibration_and_poses(tmp_path):
+    root = _tum(tmp_path, [1.0, 1.1, 1.2], [1.0, 1.1, 1.2], name="eth3d_table_3")
+    assert detect_stream_format(root) == "tum"  # without calibration.txt (and then without intrinsics)
+    (root / "calibration.txt").write_text("726.2 726.3 354.6 186.5\n")
+    s = open_stream(root)
+    assert s.format == "eth3d" and len(s) == 3
+    np.testing.assert_allclose(s.K, [[726.2, 0, 354.6], [0, 726.3, 186.5], [0, 0, 1]])  # COLMAP centres: no shift
+    np.testing.assert_allclose(s.frames[0].reference_c2w[:3, 3], [1, 2, 3])
+    _, depth = load_frame(s, 0)
+    assert depth[1, 1] == pytest.approx(1.0)  # 5000 raw / 5000 per metre
+    (root / "calibration.txt").write_text("726.2 726.3 354.6\n")
+    with pytest.raises(ValueError, match=r"calibration\.txt: malformed calibration: expected 'fx fy cx cy'"):
+        open_stream(root)
+
+
+def _scannet(root, n=3, color=(16, 12), depth=(8, 6)):
+    for d in ("color", "depth", "pose", "intrinsic"):
+        (root / d).mkdir(parents=True, exist_ok=True)
+    for k in range(n):
+        Image.fromarray(np.full((color[1], color[0], 3), 40 * k, np.uint8)).save(root / "color" / f"{k}.jpg")
+        Image.fromarray(np.full((depth[1], depth[0]), 1500, np.uint16)).save(root / "depth" / f"{k}.png")
+        T = np.eye(4)
+        T[:3, 3] = [k, 0, 0]
+        np.savetxt(root / "pose" / f"{k}.txt", T if k != 1 else np.full((4, 4), -np.inf))
+    M = np.eye(4)
+    M[:3, :3] = [[5.0, 0, 3.5], [0, 5.0, 2.5], [0, 0, 1]]
+    np.savetxt(root / "intrinsic" / "intrinsic_depth.txt", M)
+    return root
+
+
+def test_scannet_layout_resamples_colour_to_depth(tmp_path):
+    root = _scannet(tmp_path / "scene0000_00")
+    s = open_stream(root)
+    assert s.format == "scannet" and len(s) == 3 and (s.width, s.height) == (8, 6)
+    np.testing.assert_allclose(s.K, [[5, 0, 4], [0, 5, 3], [0, 0, 1]])  # integer-centred file, +0.5
+    assert s.frames[1].reference_c2w is None and s.frames[2].reference_c2w[0, 3] == 2
+    assert any("resampled" in w for w in s.warnings) and any("no (valid) reference pose" in w for w in s.warnings)
+    rgb, depth = load_frame(s, 2)
+    assert rgb.shape == (6, 8, 3) and depth.shape == (6, 8) and depth[2, 2] == pytest.approx(1.5)
+    assert rgb[3, 3, 0] == pytest.approx(80 / 255, abs=0.02)
+    (root / "depth" / "2.png").unlink()
+    with pytest.raises(FileNotFoundError, match=r"depth/2\.png: depth file of 2\.jpg does not exist"):
+        open_stream(root)
+    (root / "intrinsic" / "intrinsic_depth.txt").unlink()
+    with pytest.raises(FileNotFoundError, match="intrinsic_depth.txt: ScanNet capture needs"):
+        open_stream(root)

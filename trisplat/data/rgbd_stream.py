@@ -1,5 +1,6 @@
 """RGB-D streams for SLAM: frames in order (colour, depth, timestamp, optional reference pose) from TUM RGB-D,
-7-Scenes / 3DMatch frame folders and the Redwood/ICL layout; decoding of one frame at a chosen resolution."""
+ETH3D SLAM, ScanNet (SensReader export), 7-Scenes / 3DMatch frame folders and the Redwood/ICL layout; decoding of one
+frame at a chosen resolution."""
 
 from __future__ import annotations
 
@@ -61,6 +62,9 @@ class RGBDStream:
     K: np.ndarray
     depth_scale: float
     warnings: list[str] = field(default_factory=list)
+    resize_color: bool = False
+    """colour images are resampled to width x height (the depth's size) when read (ScanNet: 1296x968 colour, 640x480
+    depth)"""
 
     def __len__(self) -> int:
         return len(self.frames)
@@ -159,7 +163,8 @@ def _associate(query: np.ndarray, stamps: np.ndarray, max_dt: float) -> np.ndarr
     return np.where(np.abs(stamps[out] - query) <= max_dt, out, -1)
 
 
-def read_tum(root: Path, depth_scale: float | None = None, max_dt: float = TUM_ASSOC_MAX_DT) -> RGBDStream:
+def read_tum(root: Path, depth_scale: float | None = None, max_dt: float = TUM_ASSOC_MAX_DT,
+             K: np.ndarray | None = None) -> RGBDStream:
     """TUM RGB-D: rgb.txt and depth.txt (stamp + relative path per line) associated by nearest timestamp within
     max_dt seconds; groundtruth.txt (stamp tx ty tz qx qy qz qw, camera-to-world), if present, gives the
     reference poses. Colour frames with no depth in time are dropped with a warning; none matched is an error."""
@@ -209,7 +214,80 @@ def read_tum(root: Path, depth_scale: float | None = None, max_dt: float = TUM_A
     if (di < 0).any():
         warnings.append(f"dropped {int((di < 0).sum())} colour frame(s) of {rgb_txt} with no depth within {max_dt} s")
     w, h = image_size(frames[0].color_path)
-    return RGBDStream("tum", root, frames, w, h, _tum_intrinsics(root), depth_scale or TUM_DEPTH_SCALE, warnings)
+    return RGBDStream("tum", root, frames, w, h, _tum_intrinsics(root) if K is None else K,
+                      depth_scale or TUM_DEPTH_SCALE, warnings)
+
+
+def read_eth3d(root: Path, depth_scale: float | None = None, max_dt: float = TUM_ASSOC_MAX_DT) -> RGBDStream:
+    """ETH3D SLAM: the TUM lists (rgb.txt, depth.txt, groundtruth.txt when given; depth PNGs at 1/5000 m) and
+    calibration.txt with one line 'fx fy cx cy' (pixel centres at +0.5, the COLMAP convention of ETH3D's data)."""
+    root = Path(root)
+    cal = root / "calibration.txt"
+    try:
+        vals = [float(v) for v in cal.read_text().split()]
+    except OSError as exc:
+        raise FileNotFoundError(f"{cal}: ETH3D SLAM capture needs calibration.txt ({exc.strerror})") from None
+    except ValueError:
+        raise ValueError(f"{cal}: malformed calibration: expected 'fx fy cx cy' (4 numbers)") from None
+    if len(vals) != 4 or vals[0] <= 0 or vals[1] <= 0:
+        raise ValueError(f"{cal}: malformed calibration: expected 'fx fy cx cy' (4 numbers, positive focal lengths), "
+                         f"got {len(vals)} numbers")
+    fx, fy, cx, cy = vals
+    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    tum = read_tum(root, depth_scale, max_dt, K=K)
+    tum.format = "eth3d"
+    return tum
+
+
+SCANNET_FRAME = re.compile(r"^(\d+)\.(jpg|jpeg|png)$", re.IGNORECASE)
+
+
+def read_scannet(root: Path, depth_scale: float | None = None) -> RGBDStream:
+    """ScanNet as exported by its SensReader: color/N.jpg, depth/N.png (millimetres), pose/N.txt (4x4
+    camera-to-world; '-inf' rows mark frames without one) and intrinsic/intrinsic_depth.txt (4x4; integer-centred).
+    The depth camera's size and K are the stream's; colour (1296x968) is resampled to it when read, as ScanNet's
+    SLAM evaluations do."""
+    root = Path(root)
+    cdir, ddir, pdir = root / "color", root / "depth", root / "pose"
+    intr = root / "intrinsic" / "intrinsic_depth.txt"
+    for p in (cdir, ddir):
+        if not p.is_dir():
+            raise FileNotFoundError(f"{p}: ScanNet capture needs color/ and depth/ folders")
+    if not intr.is_file():
+        raise FileNotFoundError(f"{intr}: ScanNet capture needs the depth camera's intrinsics")
+    try:
+        M = np.loadtxt(intr, dtype=np.float64)
+    except ValueError as exc:
+        raise ValueError(f"{intr}: malformed intrinsics: expected a 4x4 matrix of numbers ({exc})") from None
+    if M.shape != (4, 4) or M[0, 0] <= 0 or M[1, 1] <= 0:
+        raise ValueError(f"{intr}: malformed intrinsics: expected a 4x4 matrix with positive focal lengths")
+    K = M[:3, :3].copy()
+    K[0, 2] += INTEGER_CENTRE_SHIFT
+    K[1, 2] += INTEGER_CENTRE_SHIFT
+    colors = sorted(((int(m.group(1)), p) for p in cdir.iterdir() if (m := SCANNET_FRAME.match(p.name))),
+                    key=lambda t: t[0])
+    if not colors:
+        raise FileNotFoundError(f"{cdir}: no N.jpg colour frames (ScanNet layout)")
+    frames, missing = [], 0
+    for i, (num, cpath) in enumerate(colors):
+        dpath = ddir / f"{num}.png"
+        if not dpath.is_file():
+            raise FileNotFoundError(f"{dpath}: depth file of {cpath.name} does not exist")
+        ppath = pdir / f"{num}.txt"
+        pose = _read_pose_txt(ppath) if ppath.is_file() else None
+        missing += pose is None
+        frames.append(StreamFrame(i, cpath, dpath, None, pose))
+    from trisplat.data.rgbd import read_depth_raw as _raw
+
+    h, w = _raw(frames[0].depth_path).shape
+    warnings = []
+    if 0 < missing < len(frames):
+        warnings.append(f"{missing} of {len(frames)} frames have no (valid) reference pose in {pdir}")
+    cw, ch = image_size(frames[0].color_path)
+    if (cw, ch) != (w, h):
+        warnings.append(f"colour {cw}x{ch} is resampled to the depth's {w}x{h} (ScanNet's depth intrinsics used)")
+    return RGBDStream("scannet", root, frames, w, h, K, depth_scale or SEVENSCENES_DEPTH_SCALE, warnings,
+                      resize_color=(cw, ch) != (w, h))
 
 
 def read_redwood(root: Path, depth_scale: float | None = None) -> RGBDStream:
@@ -227,10 +305,12 @@ def read_redwood(root: Path, depth_scale: float | None = None) -> RGBDStream:
 
 
 def detect_stream_format(root: Path) -> str | None:
-    """'tum', '7scenes', 'redwood' or None."""
+    """'eth3d', 'tum', 'scannet', '7scenes', 'redwood' or None."""
     root = Path(root)
     if (root / "rgb.txt").is_file() and (root / "depth.txt").is_file():
-        return "tum"
+        return "eth3d" if (root / "calibration.txt").is_file() else "tum"
+    if (root / "color").is_dir() and (root / "depth").is_dir() and (root / "intrinsic").is_dir():
+        return "scannet"
     if (root / "camera-intrinsics.txt").is_file() or any(SEVENSCENES_COLOR.match(p.name) for p in root.glob("frame-*")):
         return "7scenes"
     from trisplat.data.rgbd import find_rgbd_layout
@@ -246,11 +326,13 @@ def open_stream(root: str | Path, depth_scale: float | None = None, format: str 
     if not root.is_dir():
         raise FileNotFoundError(f"{root}: capture folder does not exist")
     fmt = format or detect_stream_format(root)
-    readers = {"tum": read_tum, "7scenes": read_sevenscenes, "redwood": read_redwood}
+    readers = {"tum": read_tum, "eth3d": read_eth3d, "scannet": read_scannet, "7scenes": read_sevenscenes,
+               "redwood": read_redwood}
     if fmt not in readers:
         raise ValueError(
-            f"{root}: not an RGB-D stream: expected TUM (rgb.txt + depth.txt), 7-Scenes (frame-NNNNNN.color.jpg + "
-            f".depth.png + camera-intrinsics.txt) or Redwood (color/ + depth/ + *.log)"
+            f"{root}: not an RGB-D stream: expected TUM (rgb.txt + depth.txt), ETH3D SLAM (TUM's lists + "
+            "calibration.txt), ScanNet (color/ + depth/ + intrinsic/intrinsic_depth.txt [+ pose/]), 7-Scenes "
+            "(frame-NNNNNN.color.jpg + .depth.png + camera-intrinsics.txt) or Redwood (color/ + depth/ + *.log)"
         )
     if depth_scale is not None and not depth_scale > 0:
         raise ValueError(f"depth_scale must be > 0 metres per raw unit, got {depth_scale}")
@@ -284,6 +366,10 @@ def load_frame(stream: RGBDStream, i: int, downscale: int = 1) -> tuple[np.ndarr
     integer factor (box filter; depth edge-aware, see downscale_depth). Wrong sizes raise naming the file."""
     fr = stream.frames[i]
     img = read_image(fr.color_path)
+    if stream.resize_color and img.shape[:2] != (stream.height, stream.width):
+        from PIL import Image
+
+        img = np.asarray(Image.fromarray(img[..., :3]).resize((stream.width, stream.height), Image.Resampling.BOX))
     if img.shape[:2] != (stream.height, stream.width):
         raise ValueError(
             f"{fr.color_path}: colour is {img.shape[1]}x{img.shape[0]} but the stream is {stream.width}x{stream.height}"
@@ -311,6 +397,8 @@ __all__ = [
     "read_tum",
     "read_sevenscenes",
     "read_redwood",
+    "read_eth3d",
+    "read_scannet",
     "detect_stream_format",
     "downscale_depth",
 ]
