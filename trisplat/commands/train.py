@@ -67,6 +67,8 @@ class TrainArgs:
     """CPUs (Ray num_cpus, and threads) of each block's task."""
     max_retries: int = 3
     """Ray retries of a block whose worker dies; each retry resumes from the block's checkpoint."""
+    ray_cpus: int | None = None
+    """--cluster local: the CPUs Ray may use on this machine (default: all of them)."""
     chunk_steps: int = 50
     """A block writes a checkpoint and its progress line every this many steps."""
     config: Annotated[TrainConfig, tyro.conf.arg(name="")] = field(default_factory=TrainConfig)
