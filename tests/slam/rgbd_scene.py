@@ -29,12 +29,14 @@ def path_w2c(n: int = N) -> list[np.ndarray]:
     return out
 
 
-def write_rgbd_sequence(root: Path, width: int = W, height: int = H, n: int = N) -> Path:
-    """Ray-cast `n` frames of demo_mesh(seed=0) along path_w2c into `root` (7-Scenes layout); returns `root`."""
+def write_rgbd_sequence(root: Path, width: int = W, height: int = H, n: int = N,
+                        path: list[np.ndarray] | None = None) -> Path:
+    """Ray-cast `n` frames of demo_mesh(seed=0) along path_w2c (or the given world-to-camera path) into `root`
+    (7-Scenes layout); returns `root`."""
     root.mkdir(parents=True, exist_ok=True)
     mesh = demo_mesh(seed=0)
     K = intrinsics(width, height, FOV_DEG)
-    for k, w2c in enumerate(path_w2c(n)):
+    for k, w2c in enumerate(path_w2c(n) if path is None else path):
         v = raycast_view(mesh, Camera(w2c, K, width, height), background=(1.0, 1.0, 1.0))
         Image.fromarray((v.rgba[..., :3] * 255 + 0.5).astype(np.uint8)).save(root / f"frame-{k:06d}.color.png")
         Image.fromarray(np.round(v.depth * 1000).astype(np.uint16)).save(root / f"frame-{k:06d}.depth.png")
@@ -43,3 +45,18 @@ def write_rgbd_sequence(root: Path, width: int = W, height: int = H, n: int = N)
     Kint[:2, 2] -= 0.5  # the file is integer-centred (OpenCV), as 7-Scenes'
     np.savetxt(root / "camera-intrinsics.txt", Kint)
     return root
+
+
+def loop_path_w2c(n: int = 25) -> list[np.ndarray]:
+    """World-to-camera matrices once around the scene (360 degrees in n - 1 equal steps, radius 2.3 m, height
+    1.1 m, looking at its centre): the last frame is back at the first one's pose."""
+    out = []
+    for k in range(n):
+        th = math.radians(-30 + 360 * k / (n - 1))
+        out.append(look_at((2.3 * math.cos(th), 2.3 * math.sin(th), 1.1), (0.0, 0.0, 0.25)))
+    return out
+
+
+def write_loop_sequence(root: Path, width: int = W, height: int = H, n: int = 25) -> Path:
+    """Ray-cast the closed path loop_path_w2c(n) into `root` (7-Scenes layout), as write_rgbd_sequence."""
+    return write_rgbd_sequence(root, width, height, n, path=loop_path_w2c(n))

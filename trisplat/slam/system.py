@@ -14,6 +14,7 @@ import torch
 from trisplat.io.atomic import atomic_write_text
 from trisplat.run import move_aside, prepare_run_dir
 from trisplat.data.rgbd_stream import RGBDStream, _box_down, downscale_depth, load_frame
+from trisplat.slam.loop import Edge, LoopCloser, LoopConfig, optimise_pose_graph
 from trisplat.slam.map import PruneConfig, SlamMap, SpawnConfig, prune, spawn
 from trisplat.slam.mapping import Keyframe, MapConfig, refine
 from trisplat.slam.se3 import ate_rmse, log_so3_angle, write_tum_trajectory
@@ -59,8 +60,20 @@ class SlamConfig:
     """... or when the mean depth residual of those pixels is above this (metres). A lost frame is tracked again
     from the last tracked pose and from the last keyframe's (relocalise_iters x the iterations); when that fails too
     it is skipped: no keyframe, no map from it, its pose not used for the next guess"""
+    lost_coverage_drop: float = 0.7
+    """a tracked frame is also suspect when its coverage falls below this x the median of the last 10 tracked
+    frames' ...)"""
+    lost_loss_rise: float = 3.0
+    """... or its tracking loss rises above this x their median (a sudden jump the tracker slid along a plane to
+    follow): it is re-localised, and kept as tracked when nothing better passes the tests"""
     relocalise_iters: int = 3
     """iteration cap of a re-localisation, as a multiple of --slam.track.max-iters (count)"""
+    realtime: bool = False
+    """keep up with a live stream at --slam.input-fps: a frame that arrives while the previous one is still being
+    processed is tracked with half the iterations (one pass, no re-render); a frame whose successor has already
+    arrived is dropped (not tracked, no map; its pose is the constant-velocity guess). The count is reported"""
+    input_fps: float = 15.0
+    """frame rate of the stream that --slam.realtime keeps up with (frames/s)"""
     checkpoint_every: int = 50
     """frames between checkpoints (count; 0 = none)"""
     eval_every: int = 10
@@ -78,6 +91,7 @@ class SlamConfig:
     spawn: SpawnConfig = field(default_factory=SpawnConfig)
     mapping: MapConfig = field(default_factory=MapConfig)
     prune: PruneConfig = field(default_factory=PruneConfig)
+    loop: LoopConfig = field(default_factory=LoopConfig)
 
 
 @dataclass
@@ -97,6 +111,14 @@ class SlamState:
     final_s: float = 0.0
     rng_state: str = ""
     """the run's numpy generator state (JSON), so a resumed run draws what the uninterrupted one would"""
+    edges: list[Edge] = field(default_factory=list)
+    """the keyframe pose graph's edges (odometry and verified loops; keyframe numbers)"""
+    track_coverage: list[float] = field(default_factory=list)
+    """per frame: the tracked coverage (0 for the first, dropped and lost ones)"""
+    dropped: list[int] = field(default_factory=list)
+    """--slam.realtime: frames dropped to keep up (numbers in the run's sequence)"""
+    hurried: int = 0
+    """--slam.realtime: frames tracked with fewer iterations to keep up"""
 
 
 def _pyramid(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, levels) -> list:
@@ -121,6 +143,10 @@ def save_checkpoint(path: Path, state: SlamState, frames_done: int) -> None:
         "track_iters": [int(v) for v in state.track_iters], "elapsed_s": float(state.elapsed_s),
         "lost": [int(v) for v in state.lost], "refined": bool(state.refined), "final_s": float(state.final_s),
         "rng_state": state.rng_state,
+        "track_coverage": [float(v) for v in state.track_coverage], "dropped": [int(v) for v in state.dropped],
+        "hurried": int(state.hurried),
+        "graph_ij": torch.tensor([[e.i, e.j, int(e.loop)] for e in state.edges], dtype=torch.int64).reshape(-1, 3),
+        "graph_Z": torch.as_tensor(np.array([e.Z for e in state.edges]).reshape(-1, 4, 4), dtype=torch.float64),
     }
     from trisplat.train.checkpoint import atomic_torch_save
 
@@ -138,6 +164,11 @@ def load_checkpoint(path: Path) -> tuple[SlamState, int]:
     st = SlamState(SlamMap(sc, b["spawn_edge"], b["birth"]), [m for m in b["c2w"].numpy()], list(b["keyframe_ids"]),
                    list(b["track_loss"]), list(b["track_iters"]), float(b["elapsed_s"]), list(b.get("lost", [])),
                    bool(b.get("refined", False)), float(b.get("final_s", 0.0)), str(b.get("rng_state", "")))
+    st.dropped, st.hurried = list(b.get("dropped", [])), int(b.get("hurried", 0))
+    st.track_coverage = list(b.get("track_coverage", [0.0] * len(st.c2w)))
+    if "graph_ij" in b:
+        st.edges = [Edge(int(i), int(j), Z.numpy().copy(), bool(lp)) for (i, j, lp), Z in zip(b["graph_ij"].tolist(),
+                                                                                               b["graph_Z"])]
     return st, int(b["frames_done"])
 
 
@@ -181,8 +212,73 @@ def motion_guess(c2w: list[np.ndarray], lost: set[int]) -> np.ndarray:
     return prev @ c2w[-2] @ prev
 
 
+def apply_pose_correction(state: SlamState, keyframes: list[Keyframe], new_kf_c2w: list[np.ndarray]) -> float:
+    """Move everything to the optimised keyframe poses: keyframe k's correction C_k = T_k' T_k^-1 (world frame) is
+    applied to each keyframe, to every frame from keyframe k up to the next one (its trajectory pose), and to the map's
+    triangles spawned at keyframe k (their vertices). Returns the largest keyframe-centre move (metres)."""
+    corr = [new @ np.linalg.inv(kf.c2w) for new, kf in zip(new_kf_c2w, keyframes)]
+    kf_frames = np.array(state.keyframe_ids)
+    for n in range(len(state.c2w)):
+        k = max(0, int(np.searchsorted(kf_frames, n, side="right")) - 1)
+        state.c2w[n] = corr[k] @ state.c2w[n]
+    moved = 0.0
+    for kf, new in zip(keyframes, new_kf_c2w):
+        moved = max(moved, float(np.linalg.norm(new[:3, 3] - kf.c2w[:3, 3])))
+        kf.c2w = new.copy()
+    sm = state.smap
+    if sm.num_faces:
+        faces = sm.scene.faces.long()
+        vb = torch.zeros(sm.scene.num_vertices, dtype=torch.int64)
+        vb[faces] = sm.birth[:, None].expand(-1, 3)
+        C = torch.as_tensor(np.array(corr), dtype=torch.float64)[vb.clamp_max(len(corr) - 1)]
+        p = sm.scene.positions.detach().double()
+        sm.scene.positions = (torch.einsum("vij,vj->vi", C[:, :3, :3], p) + C[:, :3, 3]).to(
+            sm.scene.positions.dtype).contiguous()
+    return moved
+
+
+def close_loops(state: SlamState, keyframes: list[Keyframe], closer: LoopCloser, rgb: np.ndarray, depth: np.ndarray,
+                label: str, log) -> int:
+    """Register the newest keyframe with the loop closer; when it verifies a revisit, optimise the keyframe pose
+    graph and correct the poses and the map (apply_pose_correction). Returns the number of loop edges found."""
+    found = closer.add_keyframe([kf.c2w for kf in keyframes], rgb, depth)
+    state.edges = closer.edges
+    if not found:
+        return 0
+    new, rep = optimise_pose_graph([kf.c2w for kf in keyframes], closer.edges, closer.cfg)
+    moved = apply_pose_correction(state, keyframes, new)
+    pairs = ", ".join(f"keyframe {keyframes[e.j].frame} ~ {keyframes[e.i].frame}" for e in found)
+    log(f"{label}: loop closed ({pairs}); pose graph of {len(keyframes)} keyframes, "
+        f"{sum(e.loop for e in closer.edges)} loop edges: cost {rep['cost_before']:.3g} -> {rep['cost_after']:.3g}, "
+        f"keyframes moved up to {moved * 100:.1f} cm", flush=True)
+    return len(found)
+
+
 def _track_ok(r, cfg: SlamConfig) -> bool:
     return r.coverage >= cfg.lost_coverage and r.residual <= cfg.lost_residual
+
+
+def _recent(state: SlamState, count: int = 10) -> tuple[float, float] | None:
+    """(median coverage, median loss) of the last `count` tracked frames (not the first, lost or dropped), or None
+    when there are fewer than 3."""
+    bad = set(state.lost) | set(state.dropped)
+    good = [k for k in range(1, len(state.track_loss)) if k not in bad and state.track_iters[k] > 0][-count:]
+    if len(good) < 3:
+        return None
+    return (float(np.median([state.track_coverage[k] for k in good])),
+            float(np.median([state.track_loss[k] for k in good])))
+
+
+def _consistent(r, cfg: SlamConfig, recent) -> str:
+    """'' when the result is in line with the recent frames, else why not."""
+    if recent is None:
+        return ""
+    cov, loss = recent
+    if r.coverage < cfg.lost_coverage_drop * cov:
+        return f"; coverage fell from {cov:.0%}"
+    if loss > 0 and r.loss > cfg.lost_loss_rise * loss:
+        return f"; loss {r.loss:.3g}, {r.loss / loss:.1f}x the recent frames'"
+    return ""
 
 
 def _describe(r) -> str:
@@ -190,29 +286,47 @@ def _describe(r) -> str:
             f"{'converged' if r.converged else 'not converged'} in {r.iterations} iterations")
 
 
-def track_with_relocalisation(state: SlamState, pyr, cfg: SlamConfig, n: int, label: str, log):
+def track_with_relocalisation(state: SlamState, pyr, cfg: SlamConfig, n: int, label: str, log,
+                              closer: LoopCloser | None = None, keyframes: list[Keyframe] | None = None):
     """Track frame n from the motion guess; when the result is lost (too little of the valid depth covered, or the
-    depth residual too high), track again from the last tracked pose and from the last keyframe's pose with
-    relocalise_iters x the iterations and keep the best that is not lost. Returns (TrackResult, lost: bool)."""
+    depth residual too high), track again with relocalise_iters x the iterations from the poses the frame's SIFT
+    features give against the newest keyframes' (verified with depth: LoopCloser.relocalise; a sudden jump), from
+    the last tracked pose and from the last keyframe's pose, and keep the best that is not lost.
+    Returns (TrackResult, lost: bool)."""
     import dataclasses
 
     sm = state.smap
     lost = set(state.lost)
     args = (sm.scene.positions, sm.scene.faces, sm.colors(), sm.scene.opacities(), cfg.sigma, pyr)
     r = track_frame(*args, motion_guess(state.c2w, lost), cfg.track)
-    if _track_ok(r, cfg):
+    recent = _recent(state)
+    first_ok, why = _track_ok(r, cfg), _consistent(r, cfg, recent)
+    if first_ok and not why:
         return r, False
-    log(f"{label}: tracking lost ({_describe(r)}); re-localising from the last tracked pose and the last "
-        "keyframe's", flush=True)
+    log(f"{label}: tracking lost ({_describe(r)}{why}); re-localising from SIFT matches against the newest "
+        "keyframes, the last tracked pose and the last keyframe's", flush=True)
     more = dataclasses.replace(cfg.track, max_iters=tuple(int(i) * max(1, cfg.relocalise_iters)
                                                          for i in cfg.track.max_iters))
     last_good = max(k for k in range(len(state.c2w)) if k not in lost)
     starts = [last_good] + ([state.keyframe_ids[-1]] if state.keyframe_ids[-1] != last_good else [])
-    tries = [r] + [track_frame(*args, np.linalg.inv(state.c2w[k]), more) for k in starts]
+    guesses = [np.linalg.inv(state.c2w[k]) for k in starts]
+    if closer is not None and keyframes:
+        rgb, depth, _ = (t.numpy() for t in pyr[-1])
+        found = closer.relocalise(rgb, depth, [kf.c2w for kf in keyframes], n)
+        if found:
+            log(f"{label}: {len(found)} pose(s) from SIFT matches with depth against the newest keyframes", flush=True)
+        guesses = [np.linalg.inv(c) for c in found] + guesses
+    tries = [r] + [track_frame(*args, g, more) for g in guesses]
     ok = [t for t in tries[1:] if _track_ok(t, cfg)]
-    if ok:
-        best = min(ok, key=lambda t: t.loss)
+    agree = [t for t in ok if not _consistent(t, cfg, recent)]
+    if agree:
+        best = min(agree, key=lambda t: t.loss)
         log(f"{label}: re-localised ({_describe(best)})", flush=True)
+        return best, False
+    if first_ok or ok:  # nothing in line with the recent frames, but tracked: keep the best (e.g. a blurred frame)
+        best = min(([r] if first_ok else []) + ok, key=lambda t: t.loss)
+        log(f"{label}: kept the best attempt ({_describe(best)}): no re-localisation matched the recent frames",
+            flush=True)
         return best, False
     best = max(tries, key=lambda t: (t.coverage, -t.loss))
     log(f"{label}: re-localisation failed ({_describe(best)}); frame skipped: no map is made from it and its pose "
@@ -270,29 +384,60 @@ def run_slam(stream: RGBDStream, out: Path, cfg: SlamConfig, resume: bool = Fals
                                                    "refined": state.refined}))
 
     keyframes: list[Keyframe] = []
+    closer = LoopCloser(K, cfg.loop, state.edges, seed=cfg.seed)
     for k in state.keyframe_ids:  # reload keyframe observations of a resumed run
         rgb, depth = load_frame(stream, ids[k], D)
         keyframes.append(Keyframe(k, torch.from_numpy(rgb), torch.from_numpy(depth), state.c2w[k]))
+        closer.observe(rgb, depth)
     t0 = time.time() - state.elapsed_s
     t_session = time.time()
+    import dataclasses
+
+    hurried_cfg = dataclasses.replace(cfg, track=dataclasses.replace(
+        cfg.track, max_iters=tuple(max(1, int(i) // 2) for i in cfg.track.max_iters), rerender_m=float("inf"),
+        rerender_deg=float("inf")))
     for n in range(start, len(ids)):
+        if cfg.realtime and n > start:
+            # frame n arrives (n - start) / input_fps after the session's first; behind = how late we are for it
+            behind = (time.time() - t_session) - (n - start) / cfg.input_fps
+            if behind > 1.0 / cfg.input_fps:  # frame n + 1 has arrived too: drop n
+                state.c2w.append(np.linalg.inv(motion_guess(state.c2w, set(state.lost))))
+                state.track_loss.append(float("nan"))
+                state.track_iters.append(0)
+                state.track_coverage.append(0.0)
+                state.dropped.append(n)
+                state.elapsed_s = time.time() - t0
+                continue
+        else:
+            behind = 0.0
         rgb, depth = load_frame(stream, ids[n], D)
         lost = False
         if n == 0:
             c2w = np.eye(4)
             res_loss, res_it, coverage = 0.0, 0, 0.0
         else:
-            r, lost = track_with_relocalisation(state, _pyramid(rgb, depth, K, cfg.track.levels), cfg, n,
-                                                f"frame {n + 1}/{len(ids)} (capture frame {ids[n]})", log)
+            hurry = cfg.realtime and behind > 0
+            state.hurried += int(hurry)
+            r, lost = track_with_relocalisation(state, _pyramid(rgb, depth, K, cfg.track.levels),
+                                                hurried_cfg if hurry else cfg, n,
+                                                f"frame {n + 1}/{len(ids)} (capture frame {ids[n]})", log,
+                                                closer=closer, keyframes=keyframes)
             c2w = np.linalg.inv(r.w2c)
             res_loss, res_it, coverage = r.loss, r.iterations, r.coverage
         state.c2w.append(c2w)
+        state.track_coverage.append(0.0 if lost else coverage)
         state.track_loss.append(res_loss)
         state.track_iters.append(res_it)
         if lost:
             state.lost.append(n)
         is_kf = n == 0
-        if not is_kf and not lost:
+        # a frame with a flat (e.g. black) picture is tracked on its depth alone and never becomes a keyframe: its
+        # colours would paint the map
+        flat = float(rgb.std()) < 1e-3
+        if flat and n:
+            log(f"frame {n + 1}/{len(ids)} (capture frame {ids[n]}): flat picture (colour std {float(rgb.std()):.1e}): "
+                "tracked on its depth only, not a keyframe", flush=True)
+        if not is_kf and not lost and not flat:
             last = state.c2w[state.keyframe_ids[-1]]
             rel = np.linalg.inv(last) @ c2w
             is_kf = (n - state.keyframe_ids[-1] >= cfg.keyframe_every
@@ -302,6 +447,8 @@ def run_slam(stream: RGBDStream, out: Path, cfg: SlamConfig, resume: bool = Fals
         if is_kf:
             state.keyframe_ids.append(n)
             keyframes.append(Keyframe(n, torch.from_numpy(rgb), torch.from_numpy(depth), c2w))
+            close_loops(state, keyframes, closer, rgb, depth, f"frame {n + 1}/{len(ids)} (capture frame {ids[n]})", log)
+            c2w = state.c2w[n]
             spawn(state.smap, rgb, depth, c2w, K, len(keyframes) - 1, cfg.spawn, cfg.sigma, rng)
             iters = cfg.mapping.first_iters if n == 0 else cfg.mapping.iters
             refine(state.smap, keyframes, K, cfg.sigma, iters, cfg.mapping, rng)
@@ -313,6 +460,7 @@ def run_slam(stream: RGBDStream, out: Path, cfg: SlamConfig, resume: bool = Fals
             log(f"frame {done}/{len(ids)}  {rate:.2f} fps  triangles {state.smap.num_faces}  "
                 f"track loss {res_loss:.4f} ({res_it} it)  keyframes {len(keyframes)}  "
                 + (f"lost {len(state.lost)}  " if state.lost else "")
+                + (f"dropped {len(state.dropped)}  " if cfg.realtime else "")
                 + f"elapsed {_fmt_s(state.elapsed_s)}  eta {_fmt_s((len(ids) - done) / max(rate, 1e-9))}", flush=True)
         if cfg.checkpoint_every and done % cfg.checkpoint_every == 0 and done < len(ids):
             checkpoint(done)
@@ -425,6 +573,9 @@ def write_outputs(stream, out: Path, cfg: SlamConfig, state: SlamState, ids, key
         "triangles": state.smap.num_faces, "slam_seconds": slam_s, "final_refine_seconds": final_s,
         "fps": len(ids) / max(slam_s, 1e-9), "mean_track_iterations": float(np.mean(state.track_iters[1:] or [0])),
         "lost_frames": [int(n) for n in state.lost], "mesh": mesh_info,
+        "realtime": ({"input_fps": cfg.input_fps, "dropped_frames": len(state.dropped), "dropped": state.dropped,
+                      "hurried_frames": state.hurried} if cfg.realtime else None),
+        "loop_closures": [[int(state.keyframe_ids[e.i]), int(state.keyframe_ids[e.j])] for e in state.edges if e.loop],
         "held_out": evaluate_frames(stream, state.smap, state.c2w, ids, held, cfg),
     }
     ref = [stream.frames[i].reference_c2w for i in ids]

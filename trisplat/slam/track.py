@@ -25,9 +25,24 @@ class TrackConfig:
 
     levels: tuple[int, ...] = (4, 2, 1)
     max_iters: tuple[int, ...] = (12, 10, 8)
-    optimizer: str = "gn"
-    """'gn': the exact gradient preconditioned by the Gauss-Newton metric of point-to-plane depth residuals, with a
-    backtracking line search on the loss; 'adam': Adam on the increment (lr_* below)"""
+    optimizer: str = "dense"
+    """'dense': Gauss-Newton / Levenberg-Marquardt on the analytic SE(3) Jacobian of photometric and depth residuals
+    (the map rendered once at the guess, the observation warped onto it; track_dense); 'gn': the renderer's exact
+    gradient preconditioned by the Gauss-Newton metric of point-to-plane depth residuals, with a backtracking line
+    search on the loss; 'adam': Adam on the increment (lr_* below)"""
+    photo_sigma: float = 0.05
+    """'dense': scale of a photometric residual (grey level in [0,1]): residuals are divided by it ..."""
+    depth_sigma: float = 0.01
+    """... and of a depth residual (metres), so both terms are unitless in the normal equations"""
+    huber: float = 1.0
+    """'dense': Huber threshold of the scaled residuals (weights 1 below, huber/|r| above)"""
+    depth_edge: float = 0.05
+    """'dense': pixels whose rendered or observed depth differs from a neighbour's by more than this fraction are
+    depth edges (occlusion boundaries) and are left out"""
+    rerender_m: float = 0.005
+    """'dense': when the pose moved more than this (metres) or rerender_deg from the guess, the map is rendered again
+    at the new pose and the finest level is solved once more"""
+    rerender_deg: float = 0.5
     damping: float = 1e-4
     """relative Levenberg damping of the metric (x its mean eigenvalue)"""
     """iteration cap per level (count); a level stops earlier once converged"""
@@ -188,11 +203,287 @@ def _level_gn(pc0, faces, colors, opacities, sigma, rgb, depth, K, cfg: TrackCon
     return xi.detach(), lv, cov, dres, its, converged
 
 
+def _grey(rgb: np.ndarray) -> np.ndarray:
+    return rgb[..., :3].mean(-1) if rgb.ndim == 3 else rgb
+
+
+def _edges(depth: np.ndarray, frac: float) -> np.ndarray:
+    """[H,W] bool: invalid depth, or a 4-neighbour differing by more than frac of the depth (a depth edge)."""
+    bad = depth <= 0
+    d = depth
+    for sl_a, sl_b in (((slice(None), slice(1, None)), (slice(None), slice(None, -1))),
+                       ((slice(1, None), slice(None)), (slice(None, -1), slice(None)))):
+        jump = np.abs(d[sl_a] - d[sl_b]) > frac * np.minimum(d[sl_a], d[sl_b])
+        jump |= (d[sl_a] <= 0) | (d[sl_b] <= 0)
+        bad[sl_a] |= jump
+        bad[sl_b] |= jump
+    return bad
+
+
+def _bilinear(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """img sampled at pixel coordinates (x, y) (pixel centres at integers); returns (values, x0, y0) with x0, y0 the
+    upper-left neighbours (the caller checks the 4 neighbours); coordinates must lie in [0, W-1) x [0, H-1)."""
+    x0 = np.floor(x).astype(np.int64)
+    y0 = np.floor(y).astype(np.int64)
+    ax, ay = x - x0, y - y0
+    v = ((1 - ay) * ((1 - ax) * img[y0, x0] + ax * img[y0, x0 + 1])
+         + ay * ((1 - ax) * img[y0 + 1, x0] + ax * img[y0 + 1, x0 + 1]))
+    return v, x0, y0
+
+
+def _se3_left(dx: np.ndarray) -> np.ndarray:
+    from trisplat.slam.se3 import exp_se3
+
+    return exp_se3(torch.as_tensor(dx, dtype=torch.float64)).numpy()
+
+
+@dataclass
+class _Level:
+    X: np.ndarray  # [N,3] map points in the guess's camera frame
+    Ir: np.ndarray  # [N] their rendered grey
+    Io: np.ndarray  # [h,w] observed grey
+    gIo: tuple  # its x / y gradients
+    Do: np.ndarray  # [h,w] observed depth
+    gDo: tuple
+    Dbad: np.ndarray  # observed depth edge / invalid
+    K: np.ndarray
+    photo: bool  # the photometric term is used (the observation is not flat, e.g. a black frame)
+    n_valid: int  # valid observed depth pixels
+    Xall: np.ndarray  # [M,3] every covered map pixel's point, depth edges included (coverage)
+
+
+def _make_level(rgb_r, surf_r, ok_r, rgb_o, depth_o, K, cfg: TrackConfig) -> _Level:
+    def points(mask):
+        v, u = np.nonzero(mask)
+        z = surf_r[v, u].astype(np.float64)
+        return np.stack([(u + 0.5 - K[0, 2]) / K[0, 0] * z, (v + 0.5 - K[1, 2]) / K[1, 1] * z, z], 1), v, u
+
+    ok = ok_r & ~_edges(np.where(ok_r, surf_r, 0.0), cfg.depth_edge)
+    X, v, u = points(ok)
+    Io = _grey(rgb_o).astype(np.float64)
+    Do = depth_o.astype(np.float64)
+    gy, gx = np.gradient(Io)
+    dy, dx = np.gradient(Do)
+    return _Level(X, _grey(rgb_r)[v, u].astype(np.float64), Io, (gx, gy), Do, (dx, dy), _edges(Do, cfg.depth_edge),
+                  K, float(Io.std()) > 1e-3, int((Do > 0).sum()), points(ok_r & (surf_r > 0))[0])
+
+
+def _coverage(L: _Level, T: np.ndarray, outlier: float) -> tuple[float, float]:
+    """(fraction of the observation's valid-depth pixels that some covered map pixel moved by T lands on within
+    `outlier` metres, the mean |depth residual| of those landings)."""
+    Q = L.Xall @ T[:3, :3].T + T[:3, 3]
+    h, w = L.Do.shape
+    z = Q[:, 2]
+    zs = np.where(z > 1e-3, z, 1.0)
+    u = np.floor(L.K[0, 0] * Q[:, 0] / zs + L.K[0, 2]).astype(np.int64)
+    v = np.floor(L.K[1, 1] * Q[:, 1] / zs + L.K[1, 2]).astype(np.int64)
+    ins = (z > 1e-3) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    u, v, z = u[ins], v[ins], z[ins]
+    d = L.Do[v, u]
+    hit = (d > 0) & (np.abs(d - z) < outlier)
+    if not hit.any():
+        return 0.0, 0.0
+    pix = np.unique(v[hit] * w + u[hit])
+    return len(pix) / max(1, L.n_valid), float(np.abs(d[hit] - z[hit]).mean())
+
+
+def _residuals(L: _Level, T: np.ndarray, cfg: TrackConfig, jacobian: bool):
+    """Scaled photometric and depth residuals of the level's map points moved by T (guess camera -> observed
+    camera), and their [.,6] Jacobians d r / d xi of a left perturbation exp(xi) T (translation first)."""
+    Q = L.X @ T[:3, :3].T + T[:3, 3]
+    K = L.K
+    h, w = L.Do.shape
+    z = Q[:, 2]
+    front = z > 1e-3
+    zs = np.where(front, z, 1.0)
+    x = K[0, 0] * Q[:, 0] / zs + K[0, 2] - 0.5  # pixel coordinates (centres at integers)
+    y = K[1, 1] * Q[:, 1] / zs + K[1, 2] - 0.5
+    inside = front & (x >= 0) & (x < w - 1) & (y >= 0) & (y < h - 1)
+    Q, x, y, z = Q[inside], x[inside], y[inside], z[inside]
+    Do, x0, y0 = _bilinear(L.Do, x, y)
+    dok = ~(L.Dbad[y0, x0] | L.Dbad[y0, x0 + 1] | L.Dbad[y0 + 1, x0] | L.Dbad[y0 + 1, x0 + 1])
+    rD = Do - z
+    dok &= np.abs(rD) < cfg.outlier_depth
+    out = {"n_inside": int(inside.sum()), "depth_ok": dok, "rD": rD}
+    rI = None
+    if L.photo:
+        Io, _, _ = _bilinear(L.Io, x, y)
+        rI = Io - L.Ir[inside]  # used where the depth agrees (depth_ok): occlusions differ in colour too
+    if not jacobian:
+        return out, rI
+    # d(pixel)/dQ (2x3) and dQ/dxi = [I | -Q^] for the left perturbation
+    fx, fy = K[0, 0], K[1, 1]
+    iz = 1.0 / z
+    Jp = np.zeros((len(z), 2, 3))
+    Jp[:, 0, 0] = fx * iz
+    Jp[:, 0, 2] = -fx * Q[:, 0] * iz * iz
+    Jp[:, 1, 1] = fy * iz
+    Jp[:, 1, 2] = -fy * Q[:, 1] * iz * iz
+    Jq = np.zeros((len(z), 3, 6))
+    Jq[:, 0, 0] = Jq[:, 1, 1] = Jq[:, 2, 2] = 1.0
+    Jq[:, 0, 4], Jq[:, 0, 5] = Q[:, 2], -Q[:, 1]  # -Q^ : rows (0, z, -y), (-z, 0, x), (y, -x, 0)
+    Jq[:, 1, 3], Jq[:, 1, 5] = -Q[:, 2], Q[:, 0]
+    Jq[:, 2, 3], Jq[:, 2, 4] = Q[:, 1], -Q[:, 0]
+    Jpix = np.einsum("nij,njk->nik", Jp, Jq)  # [N,2,6]
+    gD = np.stack([_bilinear(L.gDo[0], x, y)[0], _bilinear(L.gDo[1], x, y)[0]], 1)
+    JD = np.einsum("ni,nik->nk", gD, Jpix) - Jq[:, 2, :]
+    out["JD"] = JD
+    if L.photo:
+        gI = np.stack([_bilinear(L.gIo[0], x, y)[0], _bilinear(L.gIo[1], x, y)[0]], 1)
+        out["JI"] = np.einsum("ni,nik->nk", gI, Jpix)
+    return out, rI
+
+
+def _huber_w(r: np.ndarray, k: float) -> np.ndarray:
+    a = np.abs(r)
+    return np.minimum(1.0, k / np.maximum(a, 1e-12))
+
+
+def _huber_cost(r: np.ndarray, k: float) -> float:
+    a = np.abs(r)
+    return float(np.where(a <= k, 0.5 * a * a, k * (a - 0.5 * k)).sum())
+
+
+def _cost(L: _Level, T: np.ndarray, cfg: TrackConfig, w_photo: float) -> tuple[float, int]:
+    o, rI = _residuals(L, T, cfg, False)
+    ok = o["depth_ok"]
+    c = _huber_cost(o["rD"][ok] / cfg.depth_sigma, cfg.huber)
+    if rI is not None:
+        c += w_photo * _huber_cost(rI[ok] / cfg.photo_sigma, cfg.huber)
+    return c / max(1, int(ok.sum())), int(ok.sum())
+
+
+def _solve_level(L: _Level, T: np.ndarray, cfg: TrackConfig, iters: int, w_photo: float):
+    """Levenberg-Marquardt on the level: returns (T, cost, iterations, converged)."""
+    lam = 1e-4
+    cost, n = _cost(L, T, cfg, w_photo)
+    its, converged = 0, False
+    for _ in range(iters):
+        its += 1
+        o, rI = _residuals(L, T, cfg, True)
+        ok = o["depth_ok"]
+        if ok.sum() < 20:
+            break
+        rD = o["rD"][ok] / cfg.depth_sigma
+        JD = o["JD"][ok] / cfg.depth_sigma
+        wD = _huber_w(rD, cfg.huber)
+        H = (JD * wD[:, None]).T @ JD
+        g = (JD * wD[:, None]).T @ rD
+        if rI is not None:
+            pr = rI[ok] / cfg.photo_sigma
+            JI = o["JI"][ok] / cfg.photo_sigma
+            wI = w_photo * _huber_w(pr, cfg.huber)
+            H += (JI * wI[:, None]).T @ JI
+            g += (JI * wI[:, None]).T @ pr
+        accepted = False
+        while lam < 1e6:
+            dx = -np.linalg.solve(H + lam * np.diag(np.diag(H) + 1e-9), g)
+            Tn = _se3_left(dx) @ T
+            cn, nn = _cost(L, Tn, cfg, w_photo)
+            if nn >= 20 and cn <= cost:
+                accepted = True
+                lam = max(lam / 10, 1e-7)
+                break
+            lam *= 10
+        if not accepted:
+            converged = True
+            break
+        step = np.abs(dx).max()
+        gain = cost - cn
+        T, cost = Tn, cn
+        if step < cfg.min_step or gain < cfg.tol * cost:
+            converged = True
+            break
+    return T, cost, its, converged
+
+
+def track_dense(positions: torch.Tensor, faces: torch.Tensor, colors: torch.Tensor, opacities: torch.Tensor,
+                sigma: float, pyramid: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]], w2c_init: np.ndarray,
+                cfg: TrackConfig) -> TrackResult:
+    """world_to_camera [4,4] of one frame by dense Gauss-Newton / Levenberg-Marquardt on the analytic SE(3)
+    Jacobian. The map is rendered once at the guess (finest level; coarser levels box-filter it); each map pixel's
+    3-D point X moves with the correction T (guess camera -> observed camera) and is projected into the observation:
+    photometric residual I_obs(pi(T X)) - I_map and depth residual D_obs(pi(T X)) - (T X)_z, scaled by photo_sigma /
+    depth_sigma, Huber-weighted, pixels on depth edges (rendered or observed) and with a depth residual above
+    outlier_depth left out. Jacobians: dr/dxi = grad(image) . d pi / dQ . [I | -Q^] (minus e_z . [I | -Q^] for the
+    depth term; xi a left perturbation, translation first, ALGORITHM.md section 5). Levels coarse to fine, the finest
+    at the processing resolution; when the pose moved more than rerender_m / rerender_deg the map is rendered again
+    at the new pose and the finest level solved once more. Coverage and residual (TrackResult) come from the finest
+    level at the final pose."""
+    from trisplat.data.rgbd_stream import _box_down, downscale_depth
+
+    pos = positions.detach()
+    faces, colors, opacities = faces.detach(), colors.detach(), opacities.detach()
+    w2c0 = np.asarray(w2c_init, np.float64)
+    rgb_f, depth_f, K_f = pyramid[-1]
+    H, W = depth_f.shape
+    # levels relative to the finest entry of the pyramid
+    fin = cfg.levels[-1]
+    T = np.eye(4)
+    total, converged_all = 0, True
+
+    def render(w2c):
+        with torch.no_grad():
+            o = rasterize(pos, faces, colors, opacities, torch.tensor(float(sigma)), torch.as_tensor(w2c), K_f, W, H,
+                          opacity_mode="mean")
+        a = o.alpha.numpy().astype(np.float64)
+        ok = a > cfg.min_alpha
+        surf = np.where(ok, o.depth.numpy() / np.maximum(a, 1e-6), 0.0)
+        return o.rgb.numpy().astype(np.float64), surf, ok
+
+    def level_data(rend, li):
+        rgb_r, surf_r, ok_r = rend
+        f = cfg.levels[li] // fin
+        rgb_o, depth_o, K = pyramid[li]
+        if f > 1:
+            rgb_r = _box_down(rgb_r, f)
+            surf_r = downscale_depth(surf_r, f)
+            ok_r = surf_r > 0
+        return _make_level(rgb_r, surf_r, ok_r, rgb_o.numpy(), depth_o.numpy(), K.numpy(), cfg)
+
+    rend = render(w2c0)
+    if not rend[2].any():
+        return TrackResult(w2c0, float("inf"), 0, False, 0.0, 0.0)
+    w_photo = 1.0
+    L = None
+    for li in range(len(pyramid)):
+        L = level_data(rend, li)
+        if len(L.X) < 20:
+            continue
+        T, cost, its, conv = _solve_level(L, T, cfg, cfg.max_iters[li], w_photo)
+        total += its
+        converged_all &= conv
+    w2c = T @ w2c0
+    from scipy.spatial.transform import Rotation
+
+    if (np.linalg.norm(T[:3, 3]) > cfg.rerender_m
+            or np.degrees(Rotation.from_matrix(T[:3, :3]).magnitude()) > cfg.rerender_deg):
+        rend = render(w2c)
+        if rend[2].any():
+            L = level_data(rend, len(pyramid) - 1)
+            T2, cost, its, conv = _solve_level(L, np.eye(4), cfg, cfg.max_iters[-1], w_photo)
+            total += its
+            converged_all &= conv
+            w2c = T2 @ w2c
+            T = T2
+        else:
+            T = np.eye(4)
+    else:
+        pass  # L is the finest level at w2c0, T the correction to apply
+    if L is None or len(L.X) < 20:
+        return TrackResult(w2c, float("inf"), total, False, 0.0, 0.0)
+    cost, _ = _cost(L, T, cfg, w_photo)
+    coverage, residual = _coverage(L, T, cfg.outlier_depth)
+    return TrackResult(w2c, float(cost), total, converged_all, min(1.0, coverage), residual)
+
+
 def track_frame(positions: torch.Tensor, faces: torch.Tensor, colors: torch.Tensor, opacities: torch.Tensor,
                 sigma: float, pyramid: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]], w2c_init: np.ndarray,
                 cfg: TrackConfig) -> TrackResult:
     """Estimate world_to_camera [4,4] of one frame. pyramid: per level of cfg.levels, (rgb [h,w,3], depth [h,w],
     K [3,3] float64) of the observation. Map tensors are used detached."""
+    if cfg.optimizer == "dense":
+        return track_dense(positions, faces, colors, opacities, sigma, pyramid, w2c_init, cfg)
     pos = positions.detach().double()
     faces, colors, opacities = faces.detach(), colors.detach(), opacities.detach()
     w2c = torch.as_tensor(w2c_init, dtype=torch.float64).clone()
