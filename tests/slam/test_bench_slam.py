@@ -38,6 +38,7 @@ def test_bench_slam_reports_both_methods(rgbd_capture, tmp_path):
         assert r["frames"] == N and r["resolution"] == f"{W}x{H}"
         assert r["ATE RMSE m"] is not None and 0 <= r["ATE RMSE m"] < 0.1, (name, r)  # a 0.2 m path
         assert r["wall s"] > 0 and r["frames/s"] > 0
+        assert r["RPE m/s"] is not None and 0 <= r["RPE m/s"] < 0.2 and r["RPE deg/s"] is not None, (name, r)
         assert r["mesh faces"] > 0 and 0 < r["largest component"] <= 1
         assert r["Chamfer m"] is not None and 0 <= r["Chamfer m"] < 0.1, (name, r)
         assert r["load before"] is not None

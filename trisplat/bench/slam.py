@@ -35,7 +35,7 @@ from trisplat.bench.common import BenchTable
 
 DEFAULT_CAPTURE = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "sevenscenes_rgbd"
 METHODS = ("trisplat", "open3d")
-COLUMNS = ["method", "frames", "resolution", "ATE RMSE m", "ATE max m", "wall s", "frames/s", "mesh faces",
+COLUMNS = ["method", "frames", "resolution", "ATE RMSE m", "ATE max m", "RPE m/s", "RPE deg/s", "wall s", "frames/s", "mesh faces",
            "largest component", "Chamfer m", "accuracy m", "completeness m", "F-score", "held-out PSNR",
            "held-out depth L1 m", "load before", "load after"]  # fmt: skip
 
@@ -63,6 +63,9 @@ class SlamBenchArgs:
     """which to run: trisplat, open3d"""
     chamfer_samples: int = 200_000
     """points sampled on each mesh for the Chamfer distance and F-score"""
+    fps: float = 30.0
+    """frame rate of a capture without timestamps (7-Scenes, ScanNet, Redwood): frame i is at i / fps seconds for
+    the RPE per second"""
     tsdf_voxel: float = 0.01
     """TSDF voxel edge (metres) of the Open3D baseline's mesh and of the reference mesh (truncation 4 voxels; at most
     400 voxels a side, coarser beyond)"""
@@ -95,22 +98,25 @@ def _aligned_mesh(mesh_path: Path, est_c2w: np.ndarray, ref_c2w: np.ndarray):
     return Surface(np.asarray(s.vertices, np.float64) @ R.T + t, np.asarray(s.faces))
 
 
-def score_run(run_dir: Path, ref_c2w: list, reference, samples: int) -> dict:
-    """ATE, mesh statistics and geometry metrics of one method's RUN (trajectory.txt + mesh.ply)."""
+def score_run(run_dir: Path, ref_c2w: list, reference, samples: int, stamps: list[float] | None = None) -> dict:
+    """ATE, RPE per second (stamps in seconds, one per frame), mesh statistics and geometry metrics of one method's
+    RUN (trajectory.txt + mesh.ply)."""
     from trisplat.eval.geometry import compare_surfaces
     from trisplat.mesh.stats import mesh_statistics
-    from trisplat.slam.trajectory import ate_rmse, read_tum_trajectory
+    from trisplat.slam.trajectory import ate_rmse, read_tum_trajectory, rpe_per_second
 
     _, est = read_tum_trajectory(run_dir / "trajectory.txt")
     if len(est) != len(ref_c2w):
         raise ValueError(f"{run_dir / 'trajectory.txt'}: {len(est)} poses for {len(ref_c2w)} frames")
     have = [k for k, r in enumerate(ref_c2w) if r is not None]
-    out: dict = {"ate": None, "mesh": None, "geometry": None}
+    out: dict = {"ate": None, "rpe": None, "mesh": None, "geometry": None}
     if len(have) < 3:
         return out
     e, r = est[have], np.array([ref_c2w[k] for k in have])
     rmse, err = ate_rmse(e, r)
     out["ate"] = {"rmse_m": rmse, "max_m": float(err.max()), "median_m": float(np.median(err)), "frames": len(have)}
+    if stamps is not None:
+        out["rpe"] = rpe_per_second(e, r, np.array([stamps[k] for k in have]))
     surf = _aligned_mesh(run_dir / "mesh.ply", e, r)
     if surf is None:
         out["mesh"] = {"num_faces": 0, "largest_component_fraction": None}
@@ -163,6 +169,7 @@ def main(argv: list[str]) -> int:
     stream = open_stream(args.capture, depth_scale=args.depth_scale)
     ids = open3d_baseline.frame_ids(len(stream), args.max_frames, args.stride)
     ref_c2w = [stream.frames[i].reference_c2w for i in ids]
+    stamps = [stream.frames[i].stamp if stream.frames[i].stamp is not None else i / args.fps for i in ids]
     if sum(r is not None for r in ref_c2w) < 3:
         raise ValueError(f"{args.capture}: fewer than 3 of the {len(ids)} selected frames have reference poses: "
                          "nothing to score against")
@@ -189,10 +196,12 @@ def main(argv: list[str]) -> int:
         metrics = _run_trisplat(args, run_dir, extra) if method == "trisplat" else _run_open3d(args, run_dir)
         wall, cpu = time.perf_counter() - t0, time.process_time() - c0
         load1 = os.getloadavg()[0]
-        scores = score_run(run_dir, ref_c2w, reference, args.chamfer_samples)
+        scores = score_run(run_dir, ref_c2w, reference, args.chamfer_samples, stamps)
         ate, mesh, geo = scores["ate"] or {}, scores["mesh"] or {}, scores["geometry"] or {}
+        rpe = scores["rpe"] or {}
         held = metrics.get("held_out") or {}
-        row = [method, len(ids), f"{W}x{H}", ate.get("rmse_m"), ate.get("max_m"), wall, len(ids) / max(wall, 1e-9),
+        row = [method, len(ids), f"{W}x{H}", ate.get("rmse_m"), ate.get("max_m"), rpe.get("translation_m_per_s"),
+               rpe.get("rotation_deg_per_s"), wall, len(ids) / max(wall, 1e-9),
                mesh.get("num_faces"), mesh.get("largest_component_fraction"), geo.get("chamfer"),
                geo.get("accuracy"), geo.get("completeness"), geo.get("fscore"), held.get("psnr"),
                held.get("depth_l1_m"), load0, load1]
@@ -204,7 +213,9 @@ def main(argv: list[str]) -> int:
     thr = next((m["geometry"]["threshold"] for m in details["methods"].values() if m.get("geometry")), None)
     table.notes.append(
         f"Capture {args.capture.name}: {len(ids)} frames (stride {args.stride}) at {W}x{H} (1/{args.downscale}). "
-        "ATE: camera centres after the rigid SE(3) alignment (no scale) onto the reference poses. Wall s: the whole "
+        "ATE: camera centres after the rigid SE(3) alignment (no scale) onto the reference poses. RPE: the relative "
+        "pose error over 1 s (TUM's definition; frames without timestamps at 1/--fps s), RMSE of its translation and "
+        "rotation per second (trisplat.slam.trajectory.rpe_per_second). Wall s: the whole "
         "method (loading, tracking, mapping, meshing; trisplat also its held-out scoring); frames/s = frames / wall s. "
         "Largest component: share of the mesh's faces in its largest vertex-connected piece (trisplat.mesh.stats). "
         f"Chamfer / accuracy / completeness (metres) and F-score (threshold {thr if thr is None else f'{thr:.3f} m'}, "

@@ -56,3 +56,36 @@ def ate_rmse(est_c2w: np.ndarray, ref_c2w: np.ndarray) -> tuple[float, np.ndarra
     _, R, t = umeyama(e, r, scale=False)
     err = np.linalg.norm(e @ R.T + t - r, axis=1)
     return float(np.sqrt(np.mean(err**2))), err
+
+
+def rpe_per_second(est_c2w: np.ndarray, ref_c2w: np.ndarray, stamps: np.ndarray, delta_s: float = 1.0
+                   ) -> dict | None:
+    """Relative pose error over delta_s seconds (the TUM benchmark's RPE): for every frame i, the frame j nearest
+    to stamps[i] + delta_s (within half the median frame interval), the error
+    E = (Q_i^-1 Q_j)^-1 (P_i^-1 P_j) of the estimate P against the reference Q; RMSE of its translation (metres)
+    and rotation angle (degrees), each divided by the pairs' mean time span (per second). None when no pair."""
+    stamps = np.asarray(stamps, np.float64)
+    order = np.argsort(stamps)
+    s = stamps[order]
+    tol = 0.5 * float(np.median(np.diff(s))) if len(s) > 1 else 0.0
+    pairs = []
+    for i in range(len(stamps)):
+        k = int(np.searchsorted(s, stamps[i] + delta_s))
+        cands = [c for c in (k - 1, k) if 0 <= c < len(s)]
+        if not cands:
+            continue
+        c = min(cands, key=lambda c: abs(s[c] - stamps[i] - delta_s))
+        j = int(order[c])
+        if abs(s[c] - stamps[i] - delta_s) <= tol and stamps[j] > stamps[i]:
+            pairs.append((i, j))
+    if not pairs:
+        return None
+    et, er, span = [], [], []
+    for i, j in pairs:
+        E = np.linalg.inv(np.linalg.inv(ref_c2w[i]) @ ref_c2w[j]) @ (np.linalg.inv(est_c2w[i]) @ est_c2w[j])
+        et.append(np.linalg.norm(E[:3, 3]))
+        er.append(np.degrees(log_so3_angle(E[:3, :3])))
+        span.append(stamps[j] - stamps[i])
+    dt = float(np.mean(span))
+    return {"translation_m_per_s": float(np.sqrt(np.mean(np.square(et)))) / dt,
+            "rotation_deg_per_s": float(np.sqrt(np.mean(np.square(er)))) / dt, "pairs": len(pairs), "delta_s": dt}
