@@ -25,6 +25,10 @@ class SpawnConfig:
     """or where observed depth is in front of the rendered surface by more than this (metres)..."""
     front_relative: float = 0.03
     """... plus this fraction of the depth (unitless)"""
+    color_error: float = 0.12
+    """or where the map is there (at the observed depth) but renders the photo's colour off by more than this (mean
+    absolute RGB error in [0,1], box-filtered over the spawn stride): densify where the photometric error is high
+    (0 = off)"""
     size_factor: float = 2.0
     """triangle circumradius / RMS distance to the 3 nearest new samples (unitless)"""
     opacity: float = 0.97
@@ -109,12 +113,20 @@ def edge_lengths(positions: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
 
 
 def thin_mask(rgb_obs: np.ndarray, depth_obs: np.ndarray, alpha: np.ndarray, surf_depth: np.ndarray,
-              cfg: SpawnConfig) -> np.ndarray:
+              cfg: SpawnConfig, rgb_map: np.ndarray | None = None) -> np.ndarray:
     """Pixels [H,W] bool where the map is thin: valid observed depth and (low rendered alpha, or observed surface in
-    front of the rendered one)."""
+    front of the rendered one, or (rgb_map given: the map's render) the colour off by more than cfg.color_error
+    where the map's surface is at the observed depth)."""
     valid = (depth_obs > 0) & (depth_obs < cfg.max_depth)
     front = depth_obs < surf_depth - (cfg.front_margin + cfg.front_relative * depth_obs)
-    return valid & ((alpha < cfg.thin_alpha) | front)
+    thin = (alpha < cfg.thin_alpha) | front
+    if rgb_map is not None and cfg.color_error > 0:
+        from scipy.ndimage import uniform_filter
+
+        err = uniform_filter(np.abs(rgb_map - rgb_obs).mean(-1), size=max(1, cfg.stride), mode="nearest")
+        on = np.abs(surf_depth - depth_obs) < cfg.front_margin + cfg.front_relative * depth_obs
+        thin |= on & (alpha >= cfg.thin_alpha) & (err > cfg.color_error)
+    return valid & thin
 
 
 def spawn(smap: SlamMap, rgb: np.ndarray, depth: np.ndarray, c2w: np.ndarray, K: np.ndarray, keyframe: int,
@@ -128,9 +140,11 @@ def spawn(smap: SlamMap, rgb: np.ndarray, depth: np.ndarray, c2w: np.ndarray, K:
             out = smap.render(np.linalg.inv(c2w), K, W, H, sigma)
         alpha = out.alpha.numpy()
         surf = np.where(alpha > 1e-3, out.depth.numpy() / np.maximum(alpha, 1e-3), np.inf)
+        rgb_map = out.rgb.numpy()
     else:
         alpha, surf = np.zeros((H, W), np.float32), np.full((H, W), np.inf, np.float32)
-    mask = thin_mask(rgb, depth, alpha, surf, cfg)
+        rgb_map = None
+    mask = thin_mask(rgb, depth, alpha, surf, cfg, rgb_map)
     n_cam, n_ok = depth_to_normal(torch.from_numpy(depth.astype(np.float64)), torch.from_numpy(K))
     if cfg.min_valid_neighbours:
         mask &= n_ok.numpy()
