@@ -148,5 +148,5 @@ def test_blocks_without_ray_fail_at_once_with_the_install_command(tmp_path, monk
     rc = main(["train", str(tmp_path / "no_capture"), "--out", str(tmp_path / "run"), "--blocks", "4"])
     err = capsys.readouterr().err
     assert rc == 2
-    assert 'pip install -e ".[cluster]"' in err and "ray==2.60.0" in err
+    assert 'pip install -e ".[cluster]"' in err and "ray[client]==2.60.0" in err
     assert not (tmp_path / "run").exists()

@@ -32,7 +32,7 @@ import numpy as np
 
 from trisplat import run as layout
 
-INSTALL = 'pip install -e ".[cluster]"  (in a clone of trisplat; or: pip install "ray==2.60.0")'
+INSTALL = 'pip install -e ".[cluster]"  (in a clone of trisplat; or: pip install "ray[client]==2.60.0")'
 PROGRESS = "progress.json"
 ATTEMPTS = "attempts.jsonl"
 BLOCK_INFO = "block.json"
