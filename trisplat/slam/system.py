@@ -465,6 +465,9 @@ def run_slam(stream: RGBDStream, out: Path, cfg: SlamConfig, resume: bool = Fals
         if cfg.checkpoint_every and done % cfg.checkpoint_every == 0 and done < len(ids):
             checkpoint(done)
     slam_s = state.elapsed_s
+    if cfg.realtime:
+        log(f"realtime at {cfg.input_fps:g} frames/s: dropped {len(state.dropped)} of {len(ids)} frames (their poses "
+            f"are constant-velocity guesses), {state.hurried} tracked with half the iterations", flush=True)
     # Soft to hard: refine over every keyframe while the window sharpens to sigma_end.
     if state.refined:
         log(f"final refinement: already done ({ckpt}); writing the outputs", flush=True)
