@@ -287,9 +287,11 @@ def _coverage(L: _Level, T: np.ndarray, outlier: float) -> tuple[float, float]:
     return len(pix) / max(1, L.n_valid), float(np.abs(d[hit] - z[hit]).mean())
 
 
-def _residuals(L: _Level, T: np.ndarray, cfg: TrackConfig, jacobian: bool):
-    """Scaled photometric and depth residuals of the level's map points moved by T (guess camera -> observed
-    camera), and their [.,6] Jacobians d r / d xi of a left perturbation exp(xi) T (translation first)."""
+def _residuals(L: _Level, T: np.ndarray, cfg: TrackConfig) -> dict:
+    """The level's map points moved by T (guess camera -> observed camera) and projected into the observation, kept
+    where the observed depth there is valid, off depth edges and within outlier_depth: their depth residuals "rD"
+    (metres), photometric residuals "rI" (grey levels; None for a flat observation), the [n,6] Jacobians "JD", "JI"
+    of a left perturbation exp(xi) T (translation first), "n" kept and "inside" (projected into the image)."""
     Q = L.X @ T[:3, :3].T + T[:3, 3]
     K = L.K
     h, w = L.Do.shape
@@ -299,39 +301,30 @@ def _residuals(L: _Level, T: np.ndarray, cfg: TrackConfig, jacobian: bool):
     x = K[0, 0] * Q[:, 0] / zs + K[0, 2] - 0.5  # pixel coordinates (centres at integers)
     y = K[1, 1] * Q[:, 1] / zs + K[1, 2] - 0.5
     inside = front & (x >= 0) & (x < w - 1) & (y >= 0) & (y < h - 1)
-    Q, x, y, z = Q[inside], x[inside], y[inside], z[inside]
+    idx = np.nonzero(inside)[0]
+    x, y = x[idx], y[idx]
     Do, x0, y0 = _bilinear(L.Do, x, y)
-    dok = ~(L.Dbad[y0, x0] | L.Dbad[y0, x0 + 1] | L.Dbad[y0 + 1, x0] | L.Dbad[y0 + 1, x0 + 1])
-    rD = Do - z
-    dok &= np.abs(rD) < cfg.outlier_depth
-    out = {"n_inside": int(inside.sum()), "depth_ok": dok, "rD": rD}
-    rI = None
-    if L.photo:
-        Io, _, _ = _bilinear(L.Io, x, y)
-        rI = Io - L.Ir[inside]  # used where the depth agrees (depth_ok): occlusions differ in colour too
-    if not jacobian:
-        return out, rI
-    # d(pixel)/dQ (2x3) and dQ/dxi = [I | -Q^] for the left perturbation
+    rD = Do - z[idx]
+    ok = ~(L.Dbad[y0, x0] | L.Dbad[y0, x0 + 1] | L.Dbad[y0 + 1, x0] | L.Dbad[y0 + 1, x0 + 1])
+    ok &= np.abs(rD) < cfg.outlier_depth
+    idx, x, y, rD = idx[ok], x[ok], y[ok], rD[ok]
+    Qk = Q[idx]
+    X, Y = Qk[:, 0], Qk[:, 1]
+    iz = 1.0 / Qk[:, 2]
     fx, fy = K[0, 0], K[1, 1]
-    iz = 1.0 / z
-    Jp = np.zeros((len(z), 2, 3))
-    Jp[:, 0, 0] = fx * iz
-    Jp[:, 0, 2] = -fx * Q[:, 0] * iz * iz
-    Jp[:, 1, 1] = fy * iz
-    Jp[:, 1, 2] = -fy * Q[:, 1] * iz * iz
-    Jq = np.zeros((len(z), 3, 6))
-    Jq[:, 0, 0] = Jq[:, 1, 1] = Jq[:, 2, 2] = 1.0
-    Jq[:, 0, 4], Jq[:, 0, 5] = Q[:, 2], -Q[:, 1]  # -Q^ : rows (0, z, -y), (-z, 0, x), (y, -x, 0)
-    Jq[:, 1, 3], Jq[:, 1, 5] = -Q[:, 2], Q[:, 0]
-    Jq[:, 2, 3], Jq[:, 2, 4] = Q[:, 1], -Q[:, 0]
-    Jpix = np.einsum("nij,njk->nik", Jp, Jq)  # [N,2,6]
-    gD = np.stack([_bilinear(L.gDo[0], x, y)[0], _bilinear(L.gDo[1], x, y)[0]], 1)
-    JD = np.einsum("ni,nik->nk", gD, Jpix) - Jq[:, 2, :]
-    out["JD"] = JD
-    if L.photo:
-        gI = np.stack([_bilinear(L.gIo[0], x, y)[0], _bilinear(L.gIo[1], x, y)[0]], 1)
-        out["JI"] = np.einsum("ni,nik->nk", gI, Jpix)
-    return out, rI
+    zero = np.zeros_like(iz)
+    # d(u, v)/dxi in closed form: d pi/dQ . [I | -Q^] (ALGORITHM.md section 5's left perturbation)
+    Ju = np.stack([fx * iz, zero, -fx * X * iz * iz, -fx * X * Y * iz * iz, fx * (1 + X * X * iz * iz), -fx * Y * iz], 1)
+    Jv = np.stack([zero, fy * iz, -fy * Y * iz * iz, -fy * (1 + Y * Y * iz * iz), fy * X * Y * iz * iz, fy * X * iz], 1)
+    Jz = np.stack([zero, zero, np.ones_like(iz), Y, -X, zero], 1)
+    gx, gy = _bilinear(L.gDo[0], x, y)[0], _bilinear(L.gDo[1], x, y)[0]
+    out = {"rD": rD, "JD": gx[:, None] * Ju + gy[:, None] * Jv - Jz, "rI": None, "JI": None, "n": len(idx),
+           "inside": len(inside)}
+    if L.photo:  # only where the depth agrees: occlusions differ in colour too
+        out["rI"] = _bilinear(L.Io, x, y)[0] - L.Ir[idx]
+        gx, gy = _bilinear(L.gIo[0], x, y)[0], _bilinear(L.gIo[1], x, y)[0]
+        out["JI"] = gx[:, None] * Ju + gy[:, None] * Jv
+    return out
 
 
 def _huber_w(r: np.ndarray, k: float) -> np.ndarray:
@@ -344,34 +337,34 @@ def _huber_cost(r: np.ndarray, k: float) -> float:
     return float(np.where(a <= k, 0.5 * a * a, k * (a - 0.5 * k)).sum())
 
 
-def _cost(L: _Level, T: np.ndarray, cfg: TrackConfig, w_photo: float) -> tuple[float, int]:
-    o, rI = _residuals(L, T, cfg, False)
-    ok = o["depth_ok"]
-    c = _huber_cost(o["rD"][ok] / cfg.depth_sigma, cfg.huber)
-    if rI is not None:
-        c += w_photo * _huber_cost(rI[ok] / cfg.photo_sigma, cfg.huber)
-    return c / max(1, int(ok.sum())), int(ok.sum())
+def _evaluate_dense(L: _Level, T: np.ndarray, cfg: TrackConfig, w_photo: float) -> tuple[float, dict]:
+    """(mean robust cost of the scaled residuals, the residuals and Jacobians) at T."""
+    o = _residuals(L, T, cfg)
+    c = _huber_cost(o["rD"] / cfg.depth_sigma, cfg.huber)
+    if o["rI"] is not None:
+        c += w_photo * _huber_cost(o["rI"] / cfg.photo_sigma, cfg.huber)
+    return c / max(1, o["n"]), o
 
 
 def _solve_level(L: _Level, T: np.ndarray, cfg: TrackConfig, iters: int, w_photo: float):
-    """Levenberg-Marquardt on the level: returns (T, cost, iterations, converged)."""
+    """Levenberg-Marquardt on the level: the normal equations (J^T W J + lambda diag) dx = -J^T W r of the scaled,
+    Huber-weighted depth and photometric residuals; a step is kept when it lowers the cost, else lambda grows.
+    Returns (T, cost, iterations, converged)."""
     lam = 1e-4
-    cost, n = _cost(L, T, cfg, w_photo)
+    cost, o = _evaluate_dense(L, T, cfg, w_photo)
     its, converged = 0, False
     for _ in range(iters):
         its += 1
-        o, rI = _residuals(L, T, cfg, True)
-        ok = o["depth_ok"]
-        if ok.sum() < 20:
+        if o["n"] < 20:
             break
-        rD = o["rD"][ok] / cfg.depth_sigma
-        JD = o["JD"][ok] / cfg.depth_sigma
+        rD = o["rD"] / cfg.depth_sigma
+        JD = o["JD"] / cfg.depth_sigma
         wD = _huber_w(rD, cfg.huber)
         H = (JD * wD[:, None]).T @ JD
         g = (JD * wD[:, None]).T @ rD
-        if rI is not None:
-            pr = rI[ok] / cfg.photo_sigma
-            JI = o["JI"][ok] / cfg.photo_sigma
+        if o["rI"] is not None:
+            pr = o["rI"] / cfg.photo_sigma
+            JI = o["JI"] / cfg.photo_sigma
             wI = w_photo * _huber_w(pr, cfg.huber)
             H += (JI * wI[:, None]).T @ JI
             g += (JI * wI[:, None]).T @ pr
@@ -379,8 +372,8 @@ def _solve_level(L: _Level, T: np.ndarray, cfg: TrackConfig, iters: int, w_photo
         while lam < 1e6:
             dx = -np.linalg.solve(H + lam * np.diag(np.diag(H) + 1e-9), g)
             Tn = _se3_left(dx) @ T
-            cn, nn = _cost(L, Tn, cfg, w_photo)
-            if nn >= 20 and cn <= cost:
+            cn, on = _evaluate_dense(L, Tn, cfg, w_photo)
+            if on["n"] >= 20 and cn <= cost:
                 accepted = True
                 lam = max(lam / 10, 1e-7)
                 break
@@ -390,7 +383,7 @@ def _solve_level(L: _Level, T: np.ndarray, cfg: TrackConfig, iters: int, w_photo
             break
         step = np.abs(dx).max()
         gain = cost - cn
-        T, cost = Tn, cn
+        T, cost, o = Tn, cn, on
         if step < cfg.min_step or gain < cfg.tol * cost:
             converged = True
             break
@@ -472,7 +465,7 @@ def track_dense(positions: torch.Tensor, faces: torch.Tensor, colors: torch.Tens
         pass  # L is the finest level at w2c0, T the correction to apply
     if L is None or len(L.X) < 20:
         return TrackResult(w2c, float("inf"), total, False, 0.0, 0.0)
-    cost, _ = _cost(L, T, cfg, w_photo)
+    cost, _ = _evaluate_dense(L, T, cfg, w_photo)
     coverage, residual = _coverage(L, T, cfg.outlier_depth)
     return TrackResult(w2c, float(cost), total, converged_all, min(1.0, coverage), residual)
 
