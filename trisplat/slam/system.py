@@ -43,6 +43,12 @@ class SlamConfig:
     """window sharpness of the soft renderer during SLAM (1 soft ... 0 hard)"""
     sigma_end: float = 0.02
     """sharpness reached by the final refinement (the soft-to-hard schedule's end)"""
+    final_ba_rounds: int = 0
+    """rounds of a bundle adjustment of the keyframe poses and the map before the final refinement, by blocks: every
+    keyframe's pose tracked again against the whole map (the first fixed: the gauge; the other frames follow their
+    keyframe's correction), then the map refined over all keyframes (--slam.final-ba-map-iters); 0 skips"""
+    final_ba_map_iters: int = 30
+    """map iterations per bundle-adjustment round (count)"""
     final_iters: int = 150
     """refinement iterations over all keyframes after the last frame (soft to hard); 0 skips"""
     keyframe_every: int = 8
@@ -212,10 +218,12 @@ def motion_guess(c2w: list[np.ndarray], lost: set[int]) -> np.ndarray:
     return prev @ c2w[-2] @ prev
 
 
-def apply_pose_correction(state: SlamState, keyframes: list[Keyframe], new_kf_c2w: list[np.ndarray]) -> float:
+def apply_pose_correction(state: SlamState, keyframes: list[Keyframe], new_kf_c2w: list[np.ndarray],
+                          move_map: bool = True) -> float:
     """Move everything to the optimised keyframe poses: keyframe k's correction C_k = T_k' T_k^-1 (world frame) is
-    applied to each keyframe, to every frame from keyframe k up to the next one (its trajectory pose), and to the map's
-    triangles spawned at keyframe k (their vertices). Returns the largest keyframe-centre move (metres)."""
+    applied to each keyframe, to every frame from keyframe k up to the next one (its trajectory pose), and (move_map)
+    to the map's triangles spawned at keyframe k (their vertices). Returns the largest keyframe-centre move
+    (metres)."""
     corr = [new @ np.linalg.inv(kf.c2w) for new, kf in zip(new_kf_c2w, keyframes)]
     kf_frames = np.array(state.keyframe_ids)
     for n in range(len(state.c2w)):
@@ -226,7 +234,7 @@ def apply_pose_correction(state: SlamState, keyframes: list[Keyframe], new_kf_c2
         moved = max(moved, float(np.linalg.norm(new[:3, 3] - kf.c2w[:3, 3])))
         kf.c2w = new.copy()
     sm = state.smap
-    if sm.num_faces:
+    if sm.num_faces and move_map:
         faces = sm.scene.faces.long()
         vb = torch.zeros(sm.scene.num_vertices, dtype=torch.int64)
         vb[faces] = sm.birth[:, None].expand(-1, 3)
@@ -234,6 +242,24 @@ def apply_pose_correction(state: SlamState, keyframes: list[Keyframe], new_kf_c2
         p = sm.scene.positions.detach().double()
         sm.scene.positions = (torch.einsum("vij,vj->vi", C[:, :3, :3], p) + C[:, :3, 3]).to(
             sm.scene.positions.dtype).contiguous()
+    return moved
+
+
+def bundle_adjust(state: SlamState, keyframes: list[Keyframe], K: np.ndarray, cfg: SlamConfig,
+                  rng: np.random.Generator) -> float:
+    """One round of the block bundle adjustment: each keyframe but the first tracked again (track_frame) against the
+    whole map from its pose, kept where the result passes the lost-frame tests; the other frames follow their
+    keyframe's correction (the map is not moved); then cfg.final_ba_map_iters map iterations over every keyframe.
+    Returns the largest keyframe-centre move (metres)."""
+    sm = state.smap
+    args = (sm.scene.positions, sm.scene.faces, sm.colors(), sm.scene.opacities(), cfg.sigma)
+    new = [keyframes[0].c2w.copy()]
+    for kf in keyframes[1:]:
+        r = track_frame(*args, _pyramid(kf.rgb.numpy(), kf.depth.numpy(), K, cfg.track.levels),
+                        np.linalg.inv(kf.c2w), cfg.track)
+        new.append(np.linalg.inv(r.w2c) if _track_ok(r, cfg) else kf.c2w.copy())
+    moved = apply_pose_correction(state, keyframes, new, move_map=False)
+    refine(sm, keyframes, K, cfg.sigma, cfg.final_ba_map_iters, cfg.mapping, rng, window=0)
     return moved
 
 
@@ -473,6 +499,10 @@ def run_slam(stream: RGBDStream, out: Path, cfg: SlamConfig, resume: bool = Fals
         log(f"final refinement: already done ({ckpt}); writing the outputs", flush=True)
     else:
         tf = time.time()
+        for rnd in range(cfg.final_ba_rounds if len(keyframes) > 1 else 0):
+            moved = bundle_adjust(state, keyframes, K, cfg, rng)
+            log(f"bundle adjustment round {rnd + 1}/{cfg.final_ba_rounds}: {len(keyframes) - 1} keyframe poses "
+                f"tracked again against the map (moved up to {moved * 100:.2f} cm), map refined", flush=True)
         if cfg.final_iters:
             log(f"final refinement: {cfg.final_iters} iterations over {len(keyframes)} keyframes, "
                 f"sigma {cfg.sigma} -> {cfg.sigma_end}", flush=True)
