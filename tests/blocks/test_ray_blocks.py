@@ -8,6 +8,7 @@ import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -162,7 +163,9 @@ def _kill_left_over(marker: str) -> None:
 def test_two_ray_nodes_on_loopback_spread_the_blocks_and_match_the_local_run(local_run, street, tmp_path):
     ray_bin = shutil.which("ray") or str(Path(sys.executable).with_name("ray"))
     port = _free_port()
-    temp = tmp_path / "ray"  # every process of this little cluster names it on its command line: how they are found
+    # short (Ray's socket paths under it must stay below 108 bytes); every process of this little cluster names it
+    # on its command line: how they are found and ended at the end
+    temp = Path(tempfile.mkdtemp(prefix="trisplat-ray-"))
     common = ["--num-cpus", "1", "--node-ip-address", "127.0.0.1", "--block", "--disable-usage-stats"]
     env = {k: v for k, v in os.environ.items() if k != "RAY_ADDRESS"}
     log = open(tmp_path / "ray_start.log", "w")
@@ -206,6 +209,7 @@ def test_two_ray_nodes_on_loopback_spread_the_blocks_and_match_the_local_run(loc
                     os.killpg(proc.pid, signal.SIGKILL)
         _kill_left_over(str(temp))
         log.close()
+        shutil.rmtree(temp, ignore_errors=True)
     results = json.loads((run / "blocks.json").read_text())["results"]
     assert len({r["node"] for r in results}) == 2  # one block on each node
     for name in ("block_00", "block_01"):

@@ -15,7 +15,6 @@ Each training process is a `trisplat train` command line (printed in the notes),
 from __future__ import annotations
 
 import json
-import resource
 import subprocess
 import sys
 import time
@@ -48,29 +47,41 @@ class BlocksBenchArgs:
     preset: str = "fast"
 
 
-def _cpu_children() -> float:
-    ru = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return ru.ru_utime + ru.ru_stime
+def _start(capture: Path, out: Path, args: BlocksBenchArgs, steps: int, blocks: int | None) -> dict:
+    """Start one `trisplat train` process (single-threaded; with `blocks`, partitioned on local Ray, one CPU)."""
+    import os
 
-
-def _train(capture: Path, out: Path, args: BlocksBenchArgs, steps: int, blocks: int | None) -> dict:
-    """One `trisplat train` process; returns its metrics with its wall and CPU seconds and the command."""
     cmd = [sys.executable, "-m", "trisplat", "train", str(capture), "--out", str(out), "--preset", args.preset,
            "--steps", str(steps), "--texture-size", "0", "--num-renders", "1", "--quiet", "--force"]
     if blocks is not None:
         cmd += ["--blocks", str(blocks), "--ray-cpus", str(args.ray_cpus), "--cpus-per-block", "1"]
-    env = {**__import__("os").environ, "OMP_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
+        if blocks == 1:  # one block through Ray and the merge, not the ordinary run
+            cmd += ["--shared", str(out / "blocks")]
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
            "OMP_WAIT_POLICY": "PASSIVE"}
     env.pop("RAY_ADDRESS", None)
-    cpu0, t0 = _cpu_children(), time.perf_counter()
-    r = subprocess.run(cmd, env=env, capture_output=True, text=True)
-    wall, cpu = time.perf_counter() - t0, _cpu_children() - cpu0
-    if r.returncode != 0:
-        raise RuntimeError(f"{' '.join(cmd)} failed ({r.returncode}):\n{r.stderr[-3000:]}")
-    m = json.loads((out / "metrics.json").read_text())
+    out.parent.mkdir(parents=True, exist_ok=True)
+    log = open(out.parent / f"{out.name}.log", "w")
+    proc = subprocess.Popen(cmd, env=env, stdout=log, stderr=log)
     shown = " ".join(c if c != sys.executable else "python" for c in cmd)
-    return {"metrics": m, "wall_s": wall, "cpu_s": cpu, "run": out,
+    return {"proc": proc, "log": log, "t0": time.perf_counter(), "run": out,
             "command": shown.replace(" --quiet", "").replace(" --force", "")}
+
+
+def _wait(job: dict) -> dict:
+    """Wait for a process of _start: its metrics, wall seconds, CPU seconds and peak memory (its own, os.wait4)."""
+    import os
+
+    _, status, ru = os.wait4(job["proc"].pid, 0)
+    job["proc"].returncode = os.waitstatus_to_exitcode(status)
+    job["log"].close()
+    wall = time.perf_counter() - job["t0"]
+    if job["proc"].returncode != 0:
+        log = (job["run"].parent / f"{job['run'].name}.log").read_text()
+        raise RuntimeError(f"{job['command']} failed ({job['proc'].returncode}):\n{log[-3000:]}")
+    m = json.loads((job["run"] / "metrics.json").read_text())
+    return {"metrics": m, "wall_s": wall, "cpu_s": ru.ru_utime + ru.ru_stime, "peak_mb": ru.ru_maxrss / 1024.0,
+            "run": job["run"], "command": job["command"]}
 
 
 def _chamfer(run: Path, capture: Path) -> float:
@@ -95,11 +106,19 @@ def main(argv: list[str]) -> int:
 
     table = BenchTable("blocks", ["run", "objects", "blocks", "steps", "CPU s", "wall s", "test PSNR dB",
                                   "Chamfer m", "largest piece", "non-manifold edges", "faces",
-                                  "peak MiB per block (max)", "views per block", "merge s", "merge peak MiB"])
+                                  "peak MiB per block (max)", "views per block", "merge s", "driver + merge peak MiB"])
     cap = street(args.objects)
-    single = _train(cap, work / "single", args, args.blocks * args.block_steps, None)
-    single_peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0
-    runs = {args.objects: _train(cap, work / f"blocks{args.objects}", args, args.block_steps, args.blocks)}
+    sizes = {n: street(n) for n in args.memory_objects}
+    # every run at once, each single-threaded (Ray: one CPU per instance, so its blocks run one after the other):
+    # CPU seconds and peak memory are per process and do not depend on what else runs; wall times do
+    jobs = {"single": _start(cap, work / "single", args, args.blocks * args.block_steps, None),
+            args.objects: _start(cap, work / f"blocks{args.objects}", args, args.block_steps, args.blocks)}
+    for n in args.memory_objects:
+        if n not in jobs:
+            jobs[n] = _start(sizes[n], work / f"blocks{n}", args, args.block_steps, max(1, n // 2))
+    done = {k: _wait(j) for k, j in jobs.items()}
+    single, runs = done.pop("single"), done
+    single_peak = single["peak_mb"]
     for res, name, nblocks in ((single, "single run", 1),
                                (runs[args.objects], f"{args.blocks} blocks, local Ray", args.blocks)):
         m = res["metrics"]
@@ -111,19 +130,17 @@ def main(argv: list[str]) -> int:
                   round(res["wall_s"], 1), round(m["psnr"], 2), round(_chamfer(res["run"], cap), 4),
                   round(m["mesh"]["largest_component_fraction"], 4), m["mesh"]["non_manifold_edges"], m["faces"],
                   round(max(r["peak_rss_mb"] for r in b["results"])) if b else round(single_peak), views,
-                  round(b["merge_s"] + b["finish_s"], 1) if b else None, b.get("merge_peak_rss_mb") if b else None)
+                  round(b["merge_s"] + b["finish_s"], 1) if b else None, round(res["peak_mb"]) if b else None)
     for n in args.memory_objects:
-        if n not in runs:
-            runs[n] = _train(street(n), work / f"blocks{n}", args, args.block_steps, max(1, n // 2))
         m = runs[n]["metrics"]
         b = m["blocks"]
         table.add(f"memory, {b['count']} blocks", n, b["count"], args.block_steps * b["count"],
                   round(runs[n]["cpu_s"] + sum(r["cpu_s"] for r in b["results"]), 1), round(runs[n]["wall_s"], 1),
-                  round(m["psnr"], 2), round(_chamfer(work / f"blocks{n}", street(n)), 4),
+                  round(m["psnr"], 2), round(_chamfer(work / f"blocks{n}", sizes[n]), 4),
                   round(m["mesh"]["largest_component_fraction"], 4), m["mesh"]["non_manifold_edges"], m["faces"],
                   round(max(r["peak_rss_mb"] for r in b["results"])),
                   round(sum(r["train_views"] for r in b["results"]) / len(b["results"]), 1),
-                  round(b["merge_s"] + b["finish_s"], 1), b.get("merge_peak_rss_mb"))
+                  round(b["merge_s"] + b["finish_s"], 1), round(runs[n]["peak_mb"]))
     per_block = runs[args.objects]["metrics"]["blocks"]["results"]
     table.notes.append("commands: " + "; ".join(sorted({single["command"]} | {r["command"] for r in runs.values()})))
     table.notes.append("per block (the comparison run): " + "; ".join(

@@ -36,6 +36,7 @@ INSTALL = 'pip install -e ".[cluster]"  (in a clone of trisplat; or: pip install
 PROGRESS = "progress.json"
 ATTEMPTS = "attempts.jsonl"
 BLOCK_INFO = "block.json"
+LOCAL_START_ATTEMPTS = 3  # tries to start local Ray (its node's start-up wait is fixed at 30 s)
 
 
 class MissingRay(RuntimeError):
@@ -268,9 +269,20 @@ def connect(cluster: str = "local", num_cpus: int | None = None):
         address = os.environ.get("RAY_ADDRESS") or None
         if address is None and num_cpus is not None:
             kwargs["num_cpus"] = int(num_cpus)
-        ray.init(address=address, **kwargs)
     else:
-        ray.init(address=cluster, **{k: v for k, v in kwargs.items() if k != "include_dashboard"})
+        address = cluster
+        kwargs.pop("include_dashboard")
+    for attempt in range(LOCAL_START_ATTEMPTS):
+        try:
+            ray.init(address=address, **kwargs)
+            return ray
+        except Exception as exc:  # noqa: BLE001 - Ray raises a bare Exception for this one
+            # a new local node gives its raylet a fixed 30 s to register (ray/_private/node.py): on a loaded machine
+            # that is not always enough, and a second try usually is
+            if address is not None or "timed out during startup" not in str(exc) or attempt + 1 == LOCAL_START_ATTEMPTS:
+                raise
+            ray.shutdown()
+            print(f"Ray did not start in time on this machine ({exc}); trying again", file=sys.stderr, flush=True)
     return ray
 
 

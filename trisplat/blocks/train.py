@@ -22,9 +22,10 @@ class BlocksResult:
     blocks: list | None = None
 
 
-def blocks_requested(blocks: str) -> bool:
-    """Whether --blocks asks for partitioned training (anything but 1)."""
-    return str(blocks).strip() != "1"
+def blocks_requested(blocks: str, shared: str | None = None) -> bool:
+    """Whether the command line asks for partitioned training: --blocks other than 1, or --shared (with --blocks 1:
+    the whole scene as one block, through Ray and the merge, as `trisplat bench blocks` measures it)."""
+    return str(blocks).strip() != "1" or bool(shared)
 
 
 def default_store(out: Path) -> Path:
@@ -41,7 +42,7 @@ def train_in_blocks(args, explicit: set[str] | None = None) -> BlocksResult:
     from trisplat.run import move_aside, prepare_run_dir
 
     t0 = time.perf_counter()
-    if blocks_requested(args.blocks):
+    if blocks_requested(args.blocks, args.shared):
         from trisplat.blocks.run_ray import require_ray
 
         require_ray()

@@ -57,7 +57,7 @@ class TrainArgs:
     """Dry run of --blocks: print the blocks, their views and their estimated memory and time, and stop."""
     shared: str | None = None
     """Folder (every Ray node must see it) or fsspec URL (s3://..., gs://...) for the blocks' run folders; default
-    OUT/blocks."""
+    OUT/blocks. Given with --blocks 1, the scene is trained as one block through Ray and the merge."""
     block_margin: float = 0.2
     """Overlap margin of a block: its cell grown by this fraction of its size on every inner side."""
     block_visibility: float = 0.25
@@ -325,7 +325,7 @@ def main(argv: list[str]) -> int:
                     config=(tyro.conf.OmitArgPrefixes, tyro.conf.HelptextFromCommentsOff))
     from trisplat.blocks.train import blocks_requested
 
-    if blocks_requested(args.blocks) or args.plan:  # partitioned training (trisplat.blocks); --blocks 1: one run
+    if blocks_requested(args.blocks, args.shared) or args.plan:  # partitioned training (trisplat.blocks); --blocks 1: one run
         return _train_blocks(args, argv)
     try:
         check_cheap_options(args)  # a typo costs nothing, not minutes of structure from motion
