@@ -25,6 +25,8 @@ LONG_SUITES: dict[str, tuple[str, str]] = {
     "blocks": ("trisplat.bench.blocks", "partitioned training on local Ray (issue 28) vs one run on a synthetic "
                "street: PSNR, Chamfer, largest piece at equal CPU; peak memory per block for 2/4/8 objects (needs the "
                "cluster extra; long: tens of minutes)"),
+    "texture": ("trisplat.bench.texture", "texturing a finished run (--run RUN): atlas, rows and solve seconds, "
+                "peak memory; regulariser weights scored on held-out training views"),
     "switch-memory": ("trisplat.bench.switch_memory", "peak memory of the soup-to-surface switch on a synthetic "
                       "capture (default 300 photos of 4000x3000; long: tens of minutes)"),
 }
@@ -33,7 +35,7 @@ INDEX_MD = "index.md"
 
 
 def _usage() -> str:
-    lines = ["usage: trisplat bench {render,train,mesh,losses,poses,consumers,slam,blocks,switch-memory,all} [options]   "
+    lines = ["usage: trisplat bench {render,train,mesh,losses,poses,consumers,slam,blocks,texture,switch-memory,all} [options]   "
              "(trisplat bench SUITE --help for its options)",
              "", "Each suite writes <name>.json (with machine, versions, commit) and <name>.md into --out "
              f"(default {DEFAULT_OUT}/).", "", "suites:"]  # fmt: skip

@@ -22,6 +22,7 @@ import time
 from collections.abc import Iterable
 from dataclasses import dataclass
 
+import numba as nb
 import numpy as np
 import scipy.sparse as sp
 from scipy import ndimage
@@ -30,11 +31,29 @@ from trisplat.io.colour import linear_to_srgb, linear_to_srgb_slope, srgb_to_lin
 from trisplat.texture.atlas import Atlas
 from trisplat.texture.raster import surface_samples
 from trisplat.texture.sampling import bilinear_taps
+from trisplat.texture.solve import NormalOperator, pcg
 
 SMOOTHNESS = 1e-2  # weight of the neighbour term, relative to the mean photo weight a texel gets
 PRIOR = 1e-3  # weight of the pull towards the vertex colours, relative to the same
 CG_ITERATIONS = 200
 CG_TOLERANCE = 1e-4  # relative residual of the normal equations
+
+
+@dataclass
+class TexelProblem:
+    """The fit's least-squares problem over the unknown texels: rows = W^1/2 A (csr float32, a row per covered
+    pixel of every view, columns = unknowns), b = W^1/2 b [rows,3], ids: the unknowns' flat texel indices,
+    unknown: [S*S] mask, edges [E,2]: neighbouring unknowns of one chart, prior [n,3]: linear prior colours."""
+
+    size: int
+    rows: sp.csr_matrix
+    b: np.ndarray
+    ids: np.ndarray
+    unknown: np.ndarray
+    edges: np.ndarray
+    prior: np.ndarray
+    views: int
+    samples: int
 
 
 @dataclass
@@ -58,21 +77,17 @@ def texel_coverage(atlas: Atlas):
     return surface_samples(pos, atlas.uv_faces, np.eye(4), K, S, S, 1, near=0.5)
 
 
-def fit_texture(positions: np.ndarray, faces: np.ndarray, atlas: Atlas, views: Iterable, background,
-                prior_colors: np.ndarray, supersample: int = 2, near: float = 0.01, smoothness: float = SMOOTHNESS,
-                prior: float = PRIOR, iterations: int = CG_ITERATIONS) -> tuple[np.ndarray, FitStats]:
-    """The sRGB uint8 texture [S,S,3] over `atlas` that best fits `views` (see the module docstring).
-
-    positions [V,3], faces [F,3]: the opaque mesh in the cameras' frame; views: (camera, photo float [H,W,3] sRGB
-    in [0,1]) pairs (cameras: world_to_camera, K, width, height); background: the sRGB colour behind the mesh;
-    prior_colors [V,3]: sRGB vertex colours, what texels no photo sees get."""
+def assemble(positions: np.ndarray, faces: np.ndarray, atlas: Atlas, views: Iterable, background,
+             prior_colors: np.ndarray, supersample: int = 2, near: float = 0.01) -> TexelProblem:
+    """The rows W^1/2 A and right-hand sides W^1/2 b of every view (see the module docstring) over the texels some
+    sample reads or a chart covers, with what the regularisers need (prior colours, neighbour pairs)."""
     S = atlas.size
     faces = np.asarray(faces, np.int64)
     uv_corner = atlas.uv[atlas.uv_faces]  # [F,3,2]
     bg_lin = srgb_to_linear(np.asarray(background, np.float64))
-    blocks, rhs = [], []
+    blocks = []  # per view: (row lengths, flat texel ids int32, values float32, rhs float32)
     n_views = n_samples = 0
-    t0 = time.perf_counter()
+    col_used = np.zeros(S * S, bool)
     for cam, photo in views:
         W, H = cam.width, cam.height
         ss = surface_samples(positions, faces, np.asarray(cam.world_to_camera, np.float64), np.asarray(cam.K),
@@ -96,27 +111,43 @@ def fit_texture(positions: np.ndarray, faces: np.ndarray, atlas: Atlas, views: I
         A = sp.csr_matrix((vals.ravel(), (np.repeat(row, 4), idx.ravel())), shape=(len(covered), S * S),
                           dtype=np.float32)
         A.sum_duplicates()
-        blocks.append(A)
-        rhs.append(b.astype(np.float32))
+        col_used[A.indices] = True
+        # rows in the order of their first texel: the solve's passes over the rows then sweep the texture (12x
+        # fewer cache misses than the pixels' order, where neighbouring rows read far-apart charts)
+        order = np.argsort(A.indices[A.indptr[:-1]], kind="stable")
+        A, b = A[order], b[order]
+        blocks.append((np.diff(A.indptr), A.indices.astype(np.int32), A.data, b.astype(np.float32)))
         n_views += 1
         n_samples += len(ys)
     if not blocks:
         raise ValueError("no view sees the mesh: nothing to fit a texture to")
-    A = sp.vstack(blocks, format="csr")
-    b = np.concatenate(rhs)
-    del blocks, rhs
-    t_raster = time.perf_counter() - t0
 
     # unknowns: texels some sample reads, and texels inside a chart (for the prior)
     cov = texel_coverage(atlas)
     inside = cov.face_id.ravel() >= 0
-    col_used = np.zeros(S * S, bool)
-    col_used[A.indices] = True
     unknown = col_used | inside
-    remap = np.full(S * S, -1, np.int64)
+    remap = np.full(S * S, -1, np.int32)
     ids = np.nonzero(unknown)[0]
-    remap[ids] = np.arange(len(ids))
-    A = sp.csr_matrix((A.data, remap[A.indices].astype(np.int32), A.indptr), shape=(A.shape[0], len(ids)))
+    remap[ids] = np.arange(len(ids), dtype=np.int32)
+    # the views' rows into one csr over the unknowns, a view at a time (peak: the rows plus one view's)
+    n_rows = sum(len(blk[0]) for blk in blocks)
+    nnz = sum(len(blk[1]) for blk in blocks)
+    indptr = np.zeros(n_rows + 1, np.int64)
+    indices = np.empty(nnz, np.int32)
+    data = np.empty(nnz, np.float32)
+    b = np.empty((n_rows, 3), np.float32)
+    r0 = k0 = 0
+    for v in range(len(blocks)):
+        lengths, cols, vals, rhs = blocks[v]
+        blocks[v] = None
+        r1, k1 = r0 + len(lengths), k0 + len(cols)
+        indptr[r0 + 1:r1 + 1] = k0 + np.cumsum(lengths)
+        indices[k0:k1] = remap[cols]
+        data[k0:k1] = vals
+        b[r0:r1] = rhs
+        r0, k0 = r1, k1
+    del blocks
+    A = sp.csr_matrix((data, indices, indptr), shape=(n_rows, len(ids)))
 
     # prior colour and chart label of every texel: inside a chart from the atlas raster, elsewhere the nearest one's
     fidx = cov.face_id.ravel()
@@ -132,67 +163,82 @@ def fit_texture(positions: np.ndarray, faces: np.ndarray, atlas: Atlas, views: I
         prior_lin = prior_lin[near_flat]
         label = label[near_flat]
 
-    # smoothness between 4-neighbours of one chart, both unknown
+    # 4-neighbours of one chart, both unknown
     edges = []
     for step, ok in ((1, (np.arange(S * S) % S) < S - 1), (S, np.arange(S * S) < S * (S - 1))):
         a = np.nonzero(unknown & ok)[0]
         a = a[unknown[a + step] & (label[a] == label[a + step])]
         edges.append(np.stack([remap[a], remap[a + step]], 1))
-    e = np.concatenate(edges)
-    n = len(ids)
-    adj = sp.coo_matrix((np.ones(2 * len(e), np.float32), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])),
-                        shape=(n, n)).tocsr()
-    lap = sp.diags(np.asarray(adj.sum(1)).ravel().astype(np.float32)) - adj
+    return TexelProblem(size=S, rows=A, b=b, ids=ids, unknown=unknown, edges=np.concatenate(edges),
+                        prior=prior_lin[ids], views=n_views, samples=n_samples)
 
-    AtA_diag = np.asarray(A.multiply(A).sum(0)).ravel()
-    scale = float(AtA_diag[AtA_diag > 0].mean()) if (AtA_diag > 0).any() else 1.0
-    lam_s, lam_p = smoothness * scale, prior * scale
-    x_prior = prior_lin[ids]
-    At = A.T.tocsr()
-    rhs = At @ b + lam_p * x_prior
-    # the normal matrix once (rows of A hold a few dozen texels: cheap), then each iteration is one sparse product
-    N = (At @ A + lam_s * lap + sp.identity(n, dtype=np.float32, format="csr") * lam_p).tocsr()
-    del At, A
-    diag = N.diagonal().astype(np.float64)
 
-    def apply(x):
-        return N @ x
+def solve(problem: TexelProblem, smoothness: float = SMOOTHNESS, prior: float = PRIOR,
+          iterations: int = CG_ITERATIONS, tolerance: float = CG_TOLERANCE, threads: int | None = None):
+    """The linear texels [n,3] minimising the problem's objective (module docstring; the weights relative to the
+    mean photo weight a texel gets). Jacobi-preconditioned conjugate gradients from each texel's own weighted
+    mean of what the photos show of it (the per-texel normal equation; the prior colour where none does).
+    Returns (x, iterations, relative residual)."""
+    import numba
 
-    t1 = time.perf_counter()
-    x, its, rel = _pcg(apply, rhs, 1.0 / diag, x_prior.copy(), iterations, CG_TOLERANCE)
-    t_solve = time.perf_counter() - t1
+    A = problem.rows
+    d_data = np.bincount(A.indices, weights=np.square(A.data, dtype=np.float64), minlength=A.shape[1])
+    scale = float(d_data[d_data > 0].mean()) if (d_data > 0).any() else 1.0
+    op = NormalOperator(A, problem.edges, smoothness * scale, prior * scale,
+                        numba.get_num_threads() if threads is None else int(threads))
+    rhs = _atb(A, problem.b).astype(np.float64) + op.prior * problem.prior
+    row_sum = op.ata(np.ones((A.shape[1], 3), np.float32)).astype(np.float64) + op.prior  # (A^T A + prior I) 1
+    seen = row_sum[:, 0] > 1e-12
+    x0 = problem.prior.copy()
+    x0[seen] = rhs[seen] / row_sum[seen]
+    return pcg(op, rhs, 1.0 / op.diagonal(), x0, iterations, tolerance)
 
+
+def texture_image(problem: TexelProblem, x: np.ndarray) -> np.ndarray:
+    """sRGB uint8 [S,S,3] of the linear texels x [n,3]: clipped to [0,1]; every other texel takes the nearest
+    solved texel's colour (gutters), so bilinear taps and mip levels across chart borders read surface colours."""
+    S = problem.size
     lin = np.zeros((S * S, 3))
-    lin[ids] = np.clip(x, 0.0, 1.0)
-    # gutters: every other texel takes the nearest solved texel's colour
-    _, nearest = ndimage.distance_transform_edt(~unknown.reshape(S, S), return_indices=True)
+    lin[problem.ids] = np.clip(x, 0.0, 1.0)
+    _, nearest = ndimage.distance_transform_edt(~problem.unknown.reshape(S, S), return_indices=True)
     lin = lin[(nearest[0] * S + nearest[1]).ravel()]
-    image = np.round(linear_to_srgb(lin) * 255.0).astype(np.uint8).reshape(S, S, 3)
-    stats = FitStats(views=n_views, samples=n_samples, pixels=len(b), unknowns=n, iterations=its,
-                     relative_residual=rel, seconds_raster=t_raster, seconds_solve=t_solve)
+    return np.round(linear_to_srgb(lin) * 255.0).astype(np.uint8).reshape(S, S, 3)
+
+
+def fit_texture(positions: np.ndarray, faces: np.ndarray, atlas: Atlas, views: Iterable, background,
+                prior_colors: np.ndarray, supersample: int = 2, near: float = 0.01, smoothness: float = SMOOTHNESS,
+                prior: float = PRIOR, iterations: int = CG_ITERATIONS,
+                tolerance: float = CG_TOLERANCE) -> tuple[np.ndarray, FitStats]:
+    """The sRGB uint8 texture [S,S,3] over `atlas` that best fits `views` (see the module docstring).
+
+    positions [V,3], faces [F,3]: the opaque mesh in the cameras' frame; views: (camera, photo float [H,W,3] sRGB
+    in [0,1]) pairs (cameras: world_to_camera, K, width, height); background: the sRGB colour behind the mesh;
+    prior_colors [V,3]: sRGB vertex colours, what texels no photo sees get."""
+    t0 = time.perf_counter()
+    problem = assemble(positions, faces, atlas, views, background, prior_colors, supersample, near)
+    t_raster = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    x, its, rel = solve(problem, smoothness, prior, iterations, tolerance)
+    t_solve = time.perf_counter() - t1
+    image = texture_image(problem, x)
+    stats = FitStats(views=problem.views, samples=problem.samples, pixels=problem.rows.shape[0],
+                     unknowns=problem.rows.shape[1], iterations=its, relative_residual=rel,
+                     seconds_raster=t_raster, seconds_solve=t_solve)
     return image, stats
 
 
-def _pcg(apply, b: np.ndarray, minv: np.ndarray, x: np.ndarray, iterations: int, tol: float):
-    """Preconditioned conjugate gradients on the columns of b [n,k] at once (each column its own step sizes);
-    minv: the inverse of the diagonal. Returns (x, iterations, the largest relative residual)."""
-    r = b - apply(x)
-    z = r * minv[:, None]
-    p = z.copy()
-    rz = (r * z).sum(0)
-    bnorm = np.maximum(np.linalg.norm(b, axis=0), 1e-30)
-    rel = float((np.linalg.norm(r, axis=0) / bnorm).max())
-    k = 0
-    for k in range(1, iterations + 1):  # noqa: B007 (k is the count returned)
-        Ap = apply(p)
-        alpha = rz / np.maximum((p * Ap).sum(0), 1e-30)
-        x += p * alpha
-        r -= Ap * alpha
-        rel = float((np.linalg.norm(r, axis=0) / bnorm).max())
-        if rel < tol:
-            break
-        z = r * minv[:, None]
-        rz_new = (r * z).sum(0)
-        p = z + p * (rz_new / np.maximum(rz, 1e-30))
-        rz = rz_new
-    return x, k, rel
+@nb.njit(cache=True)
+def _atb_rows(indptr, indices, data, b, out):  # pragma: no cover (compiled)
+    for r in range(len(indptr) - 1):
+        for k in range(indptr[r], indptr[r + 1]):
+            j = indices[k]
+            v = np.float64(data[k])
+            for c in range(3):
+                out[j, c] += v * b[r, c]
+
+
+def _atb(A: sp.csr_matrix, b: np.ndarray) -> np.ndarray:
+    """A^T b [n,3] float64 without transposing A."""
+    out = np.zeros((A.shape[1], 3), np.float64)
+    _atb_rows(A.indptr, A.indices, A.data, np.asarray(b, np.float32), out)
+    return out
