@@ -175,7 +175,7 @@ def test_two_ray_nodes_on_loopback_spread_the_blocks_and_match_the_local_run(loc
     ray.shutdown()
     try:
         address = f"127.0.0.1:{port}"
-        deadline = time.time() + 120
+        deadline = time.time() + 300  # a loaded machine starts a node slowly
         while True:  # the head answers
             r = subprocess.run([ray_bin, "status", "--address", address], env=env, capture_output=True)
             if r.returncode == 0:
@@ -185,6 +185,7 @@ def test_two_ray_nodes_on_loopback_spread_the_blocks_and_match_the_local_run(loc
             time.sleep(1)
         worker = subprocess.Popen([ray_bin, "start", "--address", address, "--temp-dir", str(temp), *common], env=env,
                                   start_new_session=True, stdout=log, stderr=log)
+        deadline = time.time() + 300
         while True:  # two nodes
             r = subprocess.run([ray_bin, "status", "--address", address], env=env, capture_output=True, text=True)
             if r.returncode == 0 and r.stdout.count("node_") >= 2:
