@@ -31,7 +31,7 @@ from trisplat.io.colour import linear_to_srgb, linear_to_srgb_slope, srgb_to_lin
 from trisplat.texture.atlas import Atlas
 from trisplat.texture.raster import surface_samples
 from trisplat.texture.sampling import bilinear_taps
-from trisplat.texture.solve import NormalOperator, pcg
+from trisplat.texture.solve import NormalOperator, column_square_sums, pcg
 
 SMOOTHNESS = 1e-2  # weight of the neighbour term, relative to the mean photo weight a texel gets
 PRIOR = 1e-3  # weight of the pull towards the vertex colours, relative to the same
@@ -182,7 +182,7 @@ def solve(problem: TexelProblem, smoothness: float = SMOOTHNESS, prior: float = 
     import numba
 
     A = problem.rows
-    d_data = np.bincount(A.indices, weights=np.square(A.data, dtype=np.float64), minlength=A.shape[1])
+    d_data = column_square_sums(A.indices, A.data, A.shape[1])
     scale = float(d_data[d_data > 0].mean()) if (d_data > 0).any() else 1.0
     op = NormalOperator(A, problem.edges, smoothness * scale, prior * scale,
                         numba.get_num_threads() if threads is None else int(threads))

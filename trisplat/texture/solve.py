@@ -61,6 +61,16 @@ def _laplacian_apply(edges, x, out):  # pragma: no cover (compiled)
             out[j, c] -= d
 
 
+@nb.njit(cache=True)
+def column_square_sums(indices, data, n):  # pragma: no cover (compiled)
+    """diag(A^T A) [n] float64 of a csr's (indices, data), without a float64 copy of the data."""
+    out = np.zeros(n, np.float64)
+    for k in range(len(indices)):
+        v = np.float64(data[k])
+        out[indices[k]] += v * v
+    return out
+
+
 @dataclass
 class NormalOperator:
     """x -> (A^T A + smoothness L + prior I) x for the rows A (csr, float32) over n unknowns, L the graph
@@ -110,7 +120,7 @@ class NormalOperator:
 
     def diagonal(self) -> np.ndarray:
         """diag(A^T A) + smoothness * degree + prior, float64 [n]."""
-        d = np.bincount(self._indices, weights=np.square(self._data, dtype=np.float64), minlength=self.n)
+        d = column_square_sums(self._indices, self._data, self.n)
         deg = np.bincount(self._edges.ravel(), minlength=self.n).astype(np.float64)
         return d + self.smoothness * deg + self.prior
 
