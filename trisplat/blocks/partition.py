@@ -245,16 +245,20 @@ def partition(data, n_blocks: int, margin: float = DEFAULT_MARGIN, visibility: f
 # ------------------------------------------------------------------------------------------------ estimates
 # Calibrated on this project's 2-core machine (docs/benchmarks.md, "Partitioned training on Ray"): the resident set
 # of one block's process is a fixed part (Python, torch, Numba, Ray's worker) plus the image cache, the triangle
-# table and the fusion grid of its switch; its time is steps x pixels per step.
+# table and the fusion grid of its switch (measured 723-753 MiB for the street's blocks, estimated 740); its CPU
+# time is a fixed part (process start, imports, loading, final scoring and files) plus steps x (a per-step part +
+# the pixels of a step): the street's blocks, 300 steps at 96x64, took 21-26 s of CPU (estimated 23.5).
 BASE_MEMORY_MB = 700.0
 BYTES_PER_VERTEX = 400.0  # positions, SH (degree 3), Adam moments, gradients, renderer buffers
 FUSION_BYTES_PER_VOXEL = 12.0
-SECONDS_PER_MEGAPIXEL_STEP = 0.9  # one training step over 1e6 pixels, one core (soft renderer forward + backward)
+TASK_FIXED_S = 10.0
+STEP_BASE_S = 0.03
+SECONDS_PER_MEGAPIXEL_STEP = 2.5  # one training step over 1e6 pixels, one core (soft renderer forward + backward)
 
 
 def estimate_block(block: Block, data, cfg, memory_budget_mb: float = 1024.0) -> dict:
-    """Upper estimates for one block: faces (the configuration's caps), peak memory (MiB) and training time (s,
-    one core)."""
+    """Estimates for one block: faces (the configuration's caps, an upper bound), peak memory (MiB) and the CPU
+    time of its task (s, one core)."""
     cams = [data.cameras[i] for i in block.train]
     px = float(np.mean([c.width * c.height for c in cams]))
     images_mb = min(len(cams) * px * 3 * 4 / 2**20, memory_budget_mb)
@@ -266,7 +270,8 @@ def estimate_block(block: Block, data, cfg, memory_budget_mb: float = 1024.0) ->
     voxels = min(voxels, 48_000_000)
     faces = int(min(cfg.surface_max_faces, max(2 * cfg.max_vertices, 1)))
     mem = BASE_MEMORY_MB + images_mb + cfg.max_vertices * BYTES_PER_VERTEX / 2**20 + voxels * FUSION_BYTES_PER_VOXEL / 2**20
-    seconds = cfg.steps * px / 1e6 * SECONDS_PER_MEGAPIXEL_STEP if not cfg.minutes else 60.0 * cfg.minutes
+    per_step = STEP_BASE_S + px / 1e6 * SECONDS_PER_MEGAPIXEL_STEP
+    seconds = TASK_FIXED_S + (cfg.steps * per_step if not cfg.minutes else 60.0 * cfg.minutes)
     return {"max_faces": faces, "max_vertices": int(cfg.max_vertices), "fusion_voxels": int(voxels),
             "memory_mb": round(mem), "train_s": round(seconds, 1)}
 
@@ -277,7 +282,7 @@ def plan_lines(plan: Plan, data, cfg) -> list[str]:
              f"{100 * plan.margin:.0f}% of a cell, a view joins a block that holds its camera or holds >= "
              f"{100 * plan.visibility:.0f}% of the points it sees"]
     lines.append(f"{'block':<9}{'cell u':>22}{'cell v':>22}{'train':>7}{'test':>6}{'points':>8}"
-                 f"{'faces<=':>9}{'mem MiB':>9}{'train s':>9}")
+                 f"{'faces<=':>9}{'mem MiB':>9}{'CPU s':>9}")
     fmt = lambda a, b: f"[{a:.3g}, {b:.3g})"
     n_train = len(data.train_indices)
     for b in plan.blocks:
@@ -289,6 +294,6 @@ def plan_lines(plan: Plan, data, cfg) -> list[str]:
     views = sum(len(b.train) for b in plan.blocks)
     lines.append(f"training views: {n_train} in the capture, {views} over all blocks ({views / max(n_train, 1):.2f} "
                  f"per view: the overlap); peak memory of the largest block "
-                 f"{max(b.estimates['memory_mb'] for b in plan.blocks)} MiB; block training "
+                 f"{max(b.estimates['memory_mb'] for b in plan.blocks)} MiB; the block tasks "
                  f"{sum(b.estimates['train_s'] for b in plan.blocks):.0f} s of one core in all")
     return lines
