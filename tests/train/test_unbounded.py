@@ -110,6 +110,14 @@ def test_verdict_refuses_a_bad_result_and_forgives_a_recovered_collapse():
     assert not v["ok"] and "4.20 dB" in v["problems"][0]
     v = verdict(RunHealth(), 25.0, 0.9)
     assert not v["ok"] and "90.0%" in v["problems"][0]
+    # the file the user opens is judged too: a GLB far below the model (bonsai: 14.2 against 17.4 dB), or below the
+    # trusted floor on its own, is a problem; a file close to the model is not
+    v = verdict(RunHealth(), 17.36, 1.0, file_psnr=14.22)
+    assert not v["ok"] and any("mesh.glb scores 14.22 dB" in p and "3.1 dB below" in p for p in v["problems"])
+    v = verdict(RunHealth(), 25.0, 1.0, file_psnr=23.0)
+    assert not v["ok"] and "2.0 dB below" in v["problems"][0]
+    assert verdict(RunHealth(), 25.0, 1.0, file_psnr=24.0)["ok"]
+    assert verdict(RunHealth(), 25.0, 1.0, file_psnr=float("nan"))["ok"]
 
 
 def test_oversized_rule_ignores_faces_off_screen():

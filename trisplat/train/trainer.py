@@ -795,7 +795,7 @@ class Trainer:
             extra["mesh"] = {**metrics.get("mesh", {}), **{k: st[k] for k in metrics.get("mesh", {}) if k in st},
                              "of": "the connected surface (without the far-field soup)"}
             extra["surface_faces"] = surface.num_faces
-        extra["health"] = verdict(self.health, metrics.get("psnr"), coverage)
+        extra["health"] = verdict(self.health, metrics.get("psnr"), coverage, metrics.get("file_psnr"))
         if metrics.get("report"):
             add_to_report(self.run_dir / metrics["report"], extra["health"])
         return extra
