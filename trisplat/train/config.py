@@ -205,6 +205,10 @@ class TrainConfig:
     """Fusion switch: faces of the fused surface that no training view sees. 'drop_enclosed' drops those facing the
     surface itself (an object's inside wall, joined to its outside where its underside was never seen), 'drop'
     every one, 'keep' none (trisplat.train.switch.SurfaceConfig.unseen_faces)."""
+    background_sphere: bool = True
+    """Captures without alpha (real photos): at the switch, put an opaque sphere coloured from the photos behind the
+    far-field layer (trisplat.scene.background), so no gap shows the flat background colour; it is exported with the
+    mesh as its last faces."""
     surface_opacity: float = 0.9
     """Vertex opacity the fused surface starts with (fusion switch)."""
     surface_sigma: Annotated[float | None, tyro.conf.arg(metavar="FLOAT|None")] = 0.1
