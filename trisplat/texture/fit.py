@@ -12,8 +12,9 @@ and b the photos decoded to linear (minus the background share), the texture min
 
 W weights each pixel by the square of the sRGB curve's slope at its colour, so the fit minimises (to first order)
 the error of the ENCODED values PSNR is taken on. x_prior is the model's per-vertex colour on the surface; the
-small prior and smoothness terms only decide texels no photo constrains. Normal equations, Jacobi-preconditioned
-conjugate gradients on the three channels at once; texels outside every chart are filled from the nearest fitted
+small prior and smoothness terms only decide texels no photo constrains. Normal equations, applied from the rows of
+A without forming A^T A (trisplat.texture.solve), Jacobi-preconditioned conjugate gradients on the three channels at
+once, started from each texel's own weighted mean; texels outside every chart are filled from the nearest fitted
 texel (gutters), so bilinear taps and mip levels across chart borders read surface colours.
 """
 from __future__ import annotations
