@@ -55,7 +55,7 @@ class TrainArgs:
     address of an existing Ray cluster (ray://HOST:PORT, or a node's HOST:PORT)."""
     plan: bool = False
     """Dry run of --blocks: print the blocks, their views and their estimated memory and time, and stop."""
-    shared: str | None = None
+    shared: Annotated[str | None, tyro.conf.arg(metavar="PATH|URL")] = None
     """Folder (every Ray node must see it) or fsspec URL (s3://..., gs://...) for the blocks' run folders; default
     OUT/blocks. Given with --blocks 1, the scene is trained as one block through Ray and the merge."""
     block_margin: float = 0.2
@@ -67,8 +67,8 @@ class TrainArgs:
     """CPUs (Ray num_cpus, and threads) of each block's task."""
     max_retries: int = 3
     """Ray retries of a block whose worker dies; each retry resumes from the block's checkpoint."""
-    ray_cpus: int | None = None
-    """--cluster local: the CPUs Ray may use on this machine (default: all of them)."""
+    ray_cpus: Annotated[int | None, tyro.conf.arg(metavar="INT")] = None
+    """--cluster local: the CPUs Ray may use on this machine; not given: all of them."""
     chunk_steps: int = 50
     """A block writes a checkpoint and its progress line every this many steps."""
     config: Annotated[TrainConfig, tyro.conf.arg(name="")] = field(default_factory=TrainConfig)
