@@ -18,8 +18,9 @@ MIN_TRUSTED_PSNR = 15.0  # dB: a final test PSNR below this is reported as a fai
 MIN_COVERAGE = 0.99  # fraction of test pixels the final mesh covers; below it the result has holes
 # dB: mesh.glb (what the user opens) scoring this far below the run's model means the file does not hold what the run
 # learnt (bonsai, 30 min: model 17.4 dB, its textured GLB 14.2, its vertex colours 17.1: a texture atlas starved by
-# 354k tiny charts)
-MAX_FILE_LOSS = 1.5
+# 354k tiny charts); lego's file is 1.45 dB below its model at 30 minutes, nearly all of it the view-dependent colour
+# (SH bands 1-3) an unlit file cannot hold: not a defect, so the bar is above it
+MAX_FILE_LOSS = 2.0
 
 
 @dataclass
