@@ -80,6 +80,12 @@ def export_run(
                             supersample=int(run.config.get("eval_supersample", 2)),
                             near=float(run.config.get("near", 0.01)))
         positions, fc, colors, texture = asset.positions, asset.faces, asset.colors, asset.texture
+        from trisplat.texture.asset import choice_message
+
+        if (msg := choice_message(asset.texture_report)) is not None:
+            import sys
+
+            print(msg, file=sys.stderr, flush=True)
     elif meshes:
         positions = scene.positions.detach().cpu().numpy()
         fc = scene.faces.detach().cpu().numpy()

@@ -127,3 +127,12 @@ def choose_colours(asset: MeshAsset, data, held: list[int], supersample: int, ne
                                  "chosen": "texture" if keep else "vertex colours"})
     if not keep:
         asset.texture = None
+
+
+def choice_message(report: dict | None) -> str | None:
+    """One line for the log when the file got vertex colours instead of its texture (choose_colours), else None."""
+    if not report or report.get("chosen") != "vertex colours":
+        return None
+    return (f"texture: the mesh files keep vertex colours ({report['holdout_psnr_vertex_colours']:.2f} dB against "
+            f"the texture's {report['holdout_psnr_texture']:.2f} dB on {report['holdout_views']} training views held "
+            "out of the fit)")

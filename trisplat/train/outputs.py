@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -74,6 +75,10 @@ def write_outputs(trainer, pruned) -> dict:
                         faces=getattr(cfg, "export_faces", None), supersample=cfg.eval_supersample, near=cfg.near)
     write_model_files(run_dir, scene, normalization,
                       capture_up(data), asset)
+    from trisplat.texture.asset import choice_message
+
+    if trainer.show_progress and (msg := choice_message(asset.texture_report)) is not None:
+        print(msg, file=sys.stderr, flush=True)
     # state.json stays "unfinished" until metrics.json exists, so a crash here is redone by --resume
 
     renders = run_dir / layout.RENDERS
