@@ -43,27 +43,14 @@ def background_radius(scene: TriangleScene) -> float:
 def photo_colours(points: np.ndarray, cameras: Sequence[Camera], load_image: Callable[[int], np.ndarray],
                   fallback: Sequence[float]) -> np.ndarray:
     """float32 [N,3]: the mean colour the photos show at each of `points` [N,3] (world), over every camera that sees
-    it in front of it and inside its image (the photo's pixel at its projection); `fallback` where none does."""
-    pts = np.asarray(points, dtype=np.float64)
-    total = np.zeros((len(pts), 3))
-    count = np.zeros(len(pts))
-    for n, cam in enumerate(cameras):
-        x = pts @ cam.world_to_camera[:3, :3].T + cam.world_to_camera[:3, 3]
-        z = x[:, 2]
-        front = z > 1e-6
-        uv = (x[front] / z[front, None]) @ cam.K.T
-        u, v = uv[:, 0], uv[:, 1]
-        inside = (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
-        if not inside.any():
-            continue
-        img = np.asarray(load_image(n), dtype=np.float32)
-        idx = np.flatnonzero(front)[inside]
-        total[idx] += img[v[inside].astype(np.int64), u[inside].astype(np.int64), :3]
-        count[idx] += 1
-    out = np.empty((len(pts), 3), dtype=np.float32)
-    seen = count > 0
-    out[seen] = total[seen] / count[seen, None]
-    out[~seen] = np.asarray(fallback, dtype=np.float32)
+    it in front of it and inside its image (the photo's pixel at its projection; nothing occludes: the sphere is
+    behind everything); `fallback` where none does."""
+    from trisplat.train.switch import image_colors  # the switch's colouring of a fused surface, without depths
+
+    rgb, count = image_colors(cameras, (load_image(n) for n in range(len(cameras))), None,
+                              np.asarray(points, dtype=np.float64), 0.0)
+    out = rgb.astype(np.float32)
+    out[count == 0] = np.asarray(fallback, dtype=np.float32)
     return out
 
 

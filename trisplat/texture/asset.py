@@ -98,6 +98,7 @@ def file_psnr(positions: np.ndarray, faces: np.ndarray, colors: np.ndarray, text
     import tempfile
     from pathlib import Path
 
+    from trisplat.eval.image_metrics import psnr
     from trisplat.eval.spec_render import prepare_asset, render_asset
     from trisplat.io.gltf import read_glb
     from trisplat.io.mesh_files import export_mesh
@@ -111,8 +112,7 @@ def file_psnr(positions: np.ndarray, faces: np.ndarray, colors: np.ndarray, text
         cam = data.cameras[i]
         rgb = render_asset(asset, cam.world_to_camera, cam.K, cam.width, cam.height, data.background, supersample,
                            near)
-        mse = float(np.mean((rgb - np.asarray(data.load_image(i), np.float32)[..., :3]) ** 2))
-        scores.append(-10.0 * np.log10(max(mse, 1e-12)))
+        scores.append(psnr(rgb, np.asarray(data.load_image(i), np.float32)[..., :3]))
     return float(np.mean(scores))
 
 

@@ -229,9 +229,9 @@ def transfer_attributes(scene: TriangleScene, points: np.ndarray, neighbours: in
     return sh, torch.as_tensor((opac[idx] * w).sum(1), dtype=torch.float32)
 
 
-def _visible(cam, depth: np.ndarray, points: np.ndarray, tolerance: float):
+def _visible(cam, depth: np.ndarray | None, points: np.ndarray, tolerance: float):
     """(indices into points, their pixel rows, columns) of the points [P,3] that `cam` sees: in front of it, inside
-    its image, within `tolerance` scene units of its surface depth [H,W] there."""
+    its image, within `tolerance` scene units of its surface depth [H,W] there (depth None: no occlusion test)."""
     R, t = cam.world_to_camera[:3, :3], cam.world_to_camera[:3, 3]
     pc = points @ R.T + t
     z = pc[:, 2]
@@ -240,6 +240,8 @@ def _visible(cam, depth: np.ndarray, points: np.ndarray, tolerance: float):
     v = cam.K[1, 1] * pc[:, 1] / zs + cam.K[1, 2]
     ok = (z > 1e-9) & (u >= 0) & (v >= 0) & (u < cam.width) & (v < cam.height)
     col, row = u[ok].astype(np.int64), v[ok].astype(np.int64)
+    if depth is None:
+        return np.nonzero(ok)[0], row, col
     vis = np.abs(depth[row, col] - z[ok]) <= tolerance
     return np.nonzero(ok)[0][vis], row[vis], col[vis]
 
@@ -252,10 +254,11 @@ def seen_counts(cameras: Sequence, depths: Sequence, points: np.ndarray, toleran
     return cnt
 
 
-def image_colors(cameras: Sequence, images: Iterable, depths: Sequence, points: np.ndarray, tolerance: float
+def image_colors(cameras: Sequence, images: Iterable, depths: Sequence | None, points: np.ndarray, tolerance: float
                  ) -> tuple[np.ndarray, np.ndarray]:
     """Mean RGB [P,3] of `points` over the views that see them (the point projects into the image, in front of the
-    camera, within `tolerance` scene units of that view's surface depth), and the number of such views [P].
+    camera, within `tolerance` scene units of that view's surface depth; depths None: wherever it projects into the
+    image, nothing occluding), and the number of such views [P].
     images: one [H,W,3+] photo per camera, float in [0,1] or uint8, in camera order; any iterable (a generator that
     loads each photo when asked: only one is held at a time)."""
     acc = np.zeros((len(points), 3))
@@ -263,7 +266,7 @@ def image_colors(cameras: Sequence, images: Iterable, depths: Sequence, points: 
     photos = iter(images)
     for n, cam in enumerate(cameras):
         # (not zip: its reused result tuple would hold the previous photo while the next one loads)
-        depth = depths[n]
+        depth = None if depths is None else depths[n]
         img = np.asarray(next(photos))
         idx, row, col = _visible(cam, depth, points, tolerance)
         rgb = img[row, col, :3].astype(np.float64)

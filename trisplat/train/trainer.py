@@ -482,7 +482,7 @@ class Trainer:
             surface = append_scene(surface, sub_scene(soup, far))
             report.notes.append(f"{int(far.sum())} soup faces outside the inner box kept as the far field")
         self.far_faces = int(far.sum())
-        if not masked and getattr(cfg, "background_sphere", True):
+        if not masked and cfg.background_sphere:
             # behind it all, a background sphere coloured from the photos closes the gaps (trisplat.scene.background)
             from trisplat.scene.background import background_radius, background_sphere
 
