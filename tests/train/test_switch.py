@@ -158,3 +158,34 @@ def test_switch_refuses_an_empty_render():
 
     with pytest.raises(ValueError, match="covers no pixel"):
         soup_to_surface(soup, cams, lambda n: Empty(), None)
+
+
+def test_views_that_disagree_about_a_surface_keep_it_with_a_scene_sized_truncation():
+    """A real capture's soup shows a surface at depths that differ between views by more than a few voxels: here
+    three spheres (radii 0.24, 0.3, 0.36), each view shown one of them. With the object default (3 voxels) the
+    views that see the inner sphere carve away what the others measured and the object shrinks towards the inner
+    one, in pieces (a thin object, the bonsai's table, is carved out altogether); a truncation several times the
+    disagreement (`min_truncation`, which the trainer sets for photos of a scene) averages the views to the middle
+    sphere."""
+    cams = fibonacci_cameras(24)
+    layers = [layered_sphere_soup(r=r, n=600, seed=k) for k, r in enumerate((0.24, 0.3, 0.36))]
+    offsets = np.cumsum([0] + [s.num_faces for s in layers[:-1]])
+    soup = layers[0]
+    for s in layers[1:]:
+        from trisplat.train.switch import append_scene
+
+        soup = append_scene(soup, s)
+
+    def render(n):  # view n shows layer n % 3 only: face ids into the whole soup
+        out = _render(layers[n % 3], cams[n])
+        out.face_id[out.face_id >= 0] += int(offsets[n % 3])
+        return out
+
+    box = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+    radius = {}
+    for name, frac in (("object default", 0.0), ("scene", 0.3)):
+        surface, rep = soup_to_surface(soup, cams, render, box, SurfaceConfig(resolution=64, min_truncation=frac))
+        assert rep.truncation_voxels == pytest.approx(max(3.0, frac * max(rep.grid)), rel=0.02)  # fused box: 64 voxels
+        radius[name] = float(np.median(np.linalg.norm(surface.positions.numpy(), axis=1)))
+    assert abs(radius["scene"] - 0.3 * 1.03) < 0.02, radius  # the middle sphere (its outer layer: 1.03 r)
+    assert radius["object default"] < 0.24 * 1.03 + 0.005, radius  # shrunk to the inner sphere

@@ -43,6 +43,10 @@ class SurfaceConfig:
     """grid size cap (memory: about 9 bytes per voxel; time: voxels x views projections)."""
     truncation_voxels: float = 3.0
     """TSDF truncation distance."""
+    min_truncation: float = 0.0
+    """the truncation is at least this fraction of the fused box's longest side (scene units, whatever the grid's
+    resolution): a soup whose views disagree about where a surface is by more than the truncation gets that surface
+    carved away by the views that see past it (0: truncation_voxels alone)."""
     face_ratio: float = 8.0
     """face budget of the surface: this many times the soup's face count (decimated down to it, never up)."""
     max_faces: int = 400_000
@@ -92,6 +96,7 @@ class SwitchReport:
     views: int = 0
     grid: tuple[int, int, int] = (0, 0, 0)
     voxel: float = 0.0
+    truncation_voxels: float = 0.0
     marching_cubes_faces: int = 0
     pieces: int = 0
     pieces_dropped: int = 0
@@ -373,6 +378,8 @@ def soup_to_surface(scene: TriangleScene, cameras: Sequence, render: Callable[[i
     box = fusion_box(pos, bounds)
     res = fitting_resolution(box, config.resolution, config.max_voxels)
     rep.grid, rep.voxel = grid_shape(box, res)
+    trunc_vox = max(config.truncation_voxels, config.min_truncation * float((box[1] - box[0]).max()) / rep.voxel)
+    rep.truncation_voxels = trunc_vox
     # the depth maps outlive the fusion (seen faces, photo colours): in memory up to depth_memory_mb, then on disk
     with DepthStore(int(config.depth_memory_mb * 2**20)) as depths:
         covered = False
@@ -394,7 +401,7 @@ def soup_to_surface(scene: TriangleScene, cameras: Sequence, render: Callable[[i
                 yield d
 
         t0 = time.perf_counter()
-        grid = fuse_depths(cameras, depth_maps(), box, res, config.truncation_voxels,
+        grid = fuse_depths(cameras, depth_maps(), box, res, trunc_vox,
                            max_depth=max(config.max_depth_fraction * float((box[1] - box[0]).max()),
                                          MIN_DEPTH_VOXELS * rep.voxel))
         rep.fuse_s = time.perf_counter() - t0 - rep.render_s
@@ -411,7 +418,7 @@ def soup_to_surface(scene: TriangleScene, cameras: Sequence, render: Callable[[i
         if len(faces) == 0:
             raise ValueError("depth fusion found no surface (every voxel is free): the soup's renders are empty")
         if config.unseen_faces != "keep":
-            drop = unseen_faces(verts, faces, cameras, depths, config.truncation_voxels * rep.voxel,
+            drop = unseen_faces(verts, faces, cameras, depths, trunc_vox * rep.voxel,
                                 enclosed_only=config.unseen_faces == "drop_enclosed")
             rep.notes.append(f"{int(drop.sum())} of {len(faces)} faces no view saw dropped ({config.unseen_faces})")
             faces = faces[~drop]
@@ -429,7 +436,7 @@ def soup_to_surface(scene: TriangleScene, cameras: Sequence, render: Callable[[i
             from trisplat.scene.sh import rgb_to_sh_dc
 
             rgb, seen = image_colors(cameras, (images(n) for n in range(len(cameras))), depths, verts,
-                                     config.truncation_voxels * rep.voxel)
+                                     trunc_vox * rep.voxel)
             seen_t = torch.as_tensor(seen > 0)
             sh[seen_t, 0] = rgb_to_sh_dc(torch.as_tensor(rgb[seen > 0], dtype=sh.dtype))
             rep.notes.append(f"{int((seen > 0).sum())} of {len(verts)} vertices coloured from the photos")

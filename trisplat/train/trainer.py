@@ -40,6 +40,13 @@ ROLLBACK_FORGIVEN_AFTER_EPOCHS = 1  # epochs past a failed step after which its 
 # piece apart from the floor's, below 2% of it, and dropped as a floater (its test views 5-13% covered by the
 # surface); at 0.025 it is part of the largest piece (29-38% covered, as much as marching cubes gave at all).
 UNBOUNDED_MAX_DEPTH = 0.025
+# ... and the TSDF truncation is at least this fraction of the fused box's side (16.6 voxels of bonsai's 414, 8 cm of
+# the 2-unit inner box; objects keep 3 voxels). A real capture's soup puts a surface at depths that differ between
+# views by more than 3 voxels; each view that sees past it votes its space free, and the bonsai with its table was
+# carved out of the surface (marching cubes kept a 15,785-face piece of them, dropped as a floater below 2% of the
+# floor's): the room came out without the object at its centre (test views 15.8 dB straight after the switch; with
+# 8 voxels 19.2 dB and with 16 voxels 19.1 dB, the object kept in more views; docs/benchmarks.md, issue 24).
+UNBOUNDED_TRUNCATION = 0.04
 
 
 class TrainingDiverged(RuntimeError):
@@ -465,7 +472,8 @@ class Trainer:
         scfg = SurfaceConfig(resolution=int(min(cfg.surface_resolution, max(2 * side, 32))),
                              face_ratio=cfg.surface_face_ratio, max_depth_fraction=max_depth,
                              max_faces=cfg.surface_max_faces, opacity=cfg.surface_opacity,
-                             unseen_faces=cfg.surface_unseen_faces, empty_is_free=masked)
+                             unseen_faces=cfg.surface_unseen_faces, empty_is_free=masked,
+                             min_truncation=0.0 if masked else UNBOUNDED_TRUNCATION)
         say = (lambda m: print(f"switch: {m}", file=sys.stderr, flush=True)) if self.show_progress else None
         if say:
             say(f"step {self.step}: fusing the soup's depth in {len(train)} training views into one surface")
