@@ -65,10 +65,15 @@ def block_similarity(box) -> np.ndarray:
     return similarity(0.5 * (box[0] + box[1]), 0.5 * float((box[1] - box[0]).max()))
 
 
-def block_scene_data(data, block):
+def block_scene_data(data, block, mask_outside: bool = True):
     """The SceneData one block trains on: its training and test views (re-indexed 0..), in the block's frame
     (block_similarity), its points (those inside its box) and its box as the content box. Images, alpha and depth
-    are read from the scene's loaders, on demand."""
+    are read from the scene's loaders, on demand.
+
+    mask_outside (photos with alpha, whose content box confines the block's surface): the pixels whose content lies
+    outside the block's content box (trisplat.blocks.mask.outside_content, from the scene's sparse points) are made
+    background, with alpha 0, so the block is not asked to explain what it cannot hold (see trisplat.blocks.mask).
+    Photos without alpha are left whole (their blocks keep a far field for what lies beyond the box)."""
     from trisplat.data.normalize import apply_to_points, apply_to_world_to_camera
     from trisplat.data.types import SceneData
 
@@ -83,14 +88,19 @@ def block_scene_data(data, block):
         inside = np.all((data.points >= box[0]) & (data.points <= box[1]), axis=1)
         pts = apply_to_points(M, np.asarray(data.points[inside], dtype=np.float64)).astype(np.float32)
         cols = None if data.point_colors is None else np.asarray(data.point_colors[inside], dtype=np.float32)
-    bounds = apply_to_points(M, box)
+    content = box
     if data.bounds is not None:  # the scene's content box cuts the block's (a synthetic object box, robust points)
-        full = apply_to_points(M, np.asarray(data.bounds, dtype=np.float64))
-        lo, hi = np.maximum(bounds[0], full[0]), np.minimum(bounds[1], full[1])
+        full = np.asarray(data.bounds, dtype=np.float64)
+        lo, hi = np.maximum(box[0], full[0]), np.minimum(box[1], full[1])
         if (hi > lo).all():
-            bounds = np.stack([lo, hi])
+            content = np.stack([lo, hi])
+    bounds = apply_to_points(M, content)
     image_loader = (lambda k: data.load_image(order[k]))
     alpha_loader = None if data.alpha_loader is None else (lambda k: data.load_alpha(order[k]))
+    masked = (mask_outside and alpha_loader is not None and data.points is not None and len(data.points) > 0
+              and data.load_alpha(order[0]) is not None)
+    if masked:
+        image_loader, alpha_loader = _outside_masked(data, order, content, image_loader, alpha_loader)
     depth_loader = None if data.depth_loader is None else (lambda k: data.load_depth(order[k]) * np.float32(s))
     return SceneData(cameras=cams, train_indices=np.arange(len(block.train), dtype=np.int64),
                      test_indices=np.arange(len(block.train), len(order), dtype=np.int64), points=pts,
@@ -98,6 +108,36 @@ def block_scene_data(data, block):
                      background=data.background, format=data.format, root=data.root,
                      warnings=[], image_loader=image_loader, bounds=bounds, options=dict(data.options),
                      depth_loader=depth_loader, alpha_loader=alpha_loader)
+
+
+def _outside_masked(data, order: list[int], content: np.ndarray, image_loader, alpha_loader):
+    """(image_loader, alpha_loader) of a block's views with the pixels outside_content finds made background (the
+    capture's background colour, alpha 0); the masks are computed once per view, on first use."""
+    from trisplat.blocks.mask import outside_content
+
+    points = np.asarray(data.points, dtype=np.float64)
+    background = np.asarray(data.background, dtype=np.float32).reshape(3)
+    masks: dict[int, np.ndarray] = {}
+
+    def outside(k: int) -> np.ndarray:
+        if k not in masks:
+            masks[k] = outside_content(data.cameras[order[k]], points, content)
+        return masks[k]
+
+    def load_image(k: int) -> np.ndarray:
+        img = np.array(image_loader(k), dtype=np.float32, copy=True)
+        img[outside(k)] = background
+        return img
+
+    def load_alpha(k: int) -> np.ndarray | None:
+        a = alpha_loader(k)
+        if a is None:
+            return None
+        a = np.array(a, dtype=np.float32, copy=True)
+        a[outside(k)] = 0.0
+        return a
+
+    return load_image, load_alpha
 
 
 # ----------------------------------------------------------------------------------------------------- storage
