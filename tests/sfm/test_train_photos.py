@@ -1,11 +1,14 @@
 """`trisplat train PHOTOS`: a plain photo folder is posed first into a cache folder outside it, then reused."""
 from __future__ import annotations
 
+import hashlib
 import json
+import os
+import shutil
 
 from trisplat.data.capture import is_plain_image_folder
-from trisplat.sfm.cache import FINGERPRINT, cache_folder, posed_capture
-from trisplat.sfm.pipeline import REPORT, WORK
+from trisplat.sfm.cache import FINGERPRINT, cache_folder, fingerprint, posed_capture
+from trisplat.sfm.pipeline import REPORT, WORK, PosesOptions
 
 
 def test_plain_image_folder_detection(tmp_path, synthetic_frames, synthetic_capture):
@@ -43,10 +46,27 @@ def test_train_on_photos_poses_into_the_cache_once(tmp_path, monkeypatch, synthe
     # resuming maps the photos to the same capture without running anything
     resumed = pose_plain_photos(make_train_args(folder, tmp_path / "run", preset="fast", resume=True))
     assert resumed.data == capture
-    # the fingerprint that decides reuse lists every photo with its size and modification time
+    # the fingerprint that decides reuse lists every photo with its size and the hash of its bytes
     fp = json.loads((capture / WORK / FINGERPRINT).read_text())
     assert [f[0] for f in fp["files"]] == [f"{c.name}.png" for c in cams]
     assert fp["files"][0][1] == (folder / "frame_000.png").stat().st_size
+    assert fp["files"][0][2] == hashlib.sha1((folder / "frame_000.png").read_bytes()).hexdigest()
+    # photos touched (copied, synced again: same bytes, new times) keep their poses ...
+    for p in folder.iterdir():
+        os.utime(p, ns=(p.stat().st_atime_ns, p.stat().st_mtime_ns + 10**9))
+    messages.clear()
+    assert posed_capture(folder, log=messages.append, progress=False) == capture
+    assert "earlier" in messages[0] and (capture / REPORT).stat().st_mtime_ns == stamp
+    # ... and a photo whose bytes changed (same size) does not (in a copy: the photos are a shared fixture)
+    copy = tmp_path / "copy"
+    shutil.copytree(folder, copy)
+    want = fingerprint(copy, PosesOptions())
+    frame = copy / "frame_000.png"
+    data = bytearray(frame.read_bytes())
+    data[-20] ^= 0xFF
+    frame.write_bytes(bytes(data))
+    got = fingerprint(copy, PosesOptions())
+    assert got != want and got["files"][1:] == want["files"][1:] and got["files"][0][1] == want["files"][0][1]
 
 
 def _photos(folder):
