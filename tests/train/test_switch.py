@@ -160,20 +160,21 @@ def test_switch_refuses_an_empty_render():
         soup_to_surface(soup, cams, lambda n: Empty(), None)
 
 
-def test_views_that_disagree_about_a_surface_keep_it_with_a_scene_sized_truncation():
+def test_views_that_disagree_about_a_surface_keep_it_with_a_larger_truncation_only_where_needed():
     """A real capture's soup shows a surface at depths that differ between views by more than a few voxels: here
     three spheres (radii 0.24, 0.3, 0.36), each view shown one of them. With the object default (3 voxels) the
-    views that see the inner sphere carve away what the others measured and the object shrinks towards the inner
-    one, in pieces (a thin object, the bonsai's table, is carved out altogether); a truncation several times the
-    disagreement (`min_truncation`, which the trainer sets for photos of a scene) averages the views to the middle
-    sphere."""
+    views that see the inner sphere carve away what the others measured and the object shrinks to the inner one,
+    in pieces (a thin object, the bonsai's table, is carved out altogether). The switch measures that (the share
+    of what the views saw that the surface carved away) and fuses again with the larger truncations of
+    `retry_truncations` (what the trainer sets for photos of a scene), which average the views to the middle
+    sphere; a soup whose views agree keeps the default."""
+    from trisplat.train.switch import append_scene
+
     cams = fibonacci_cameras(24)
     layers = [layered_sphere_soup(r=r, n=600, seed=k) for k, r in enumerate((0.24, 0.3, 0.36))]
     offsets = np.cumsum([0] + [s.num_faces for s in layers[:-1]])
     soup = layers[0]
     for s in layers[1:]:
-        from trisplat.train.switch import append_scene
-
         soup = append_scene(soup, s)
 
     def render(n):  # view n shows layer n % 3 only: face ids into the whole soup
@@ -182,10 +183,44 @@ def test_views_that_disagree_about_a_surface_keep_it_with_a_scene_sized_truncati
         return out
 
     box = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
-    radius = {}
-    for name, frac in (("object default", 0.0), ("scene", 0.3)):
-        surface, rep = soup_to_surface(soup, cams, render, box, SurfaceConfig(resolution=64, min_truncation=frac))
-        assert rep.truncation_voxels == pytest.approx(max(3.0, frac * max(rep.grid)), rel=0.02)  # fused box: 64 voxels
-        radius[name] = float(np.median(np.linalg.norm(surface.positions.numpy(), axis=1)))
-    assert abs(radius["scene"] - 0.3 * 1.03) < 0.02, radius  # the middle sphere (its outer layer: 1.03 r)
-    assert radius["object default"] < 0.24 * 1.03 + 0.005, radius  # shrunk to the inner sphere
+    plain, rep0 = soup_to_surface(soup, cams, render, box, SurfaceConfig(resolution=64))
+    retried, rep = soup_to_surface(soup, cams, render, box, SurfaceConfig(resolution=64, retry_truncations=(0.1, 0.3)))
+    r0 = float(np.median(np.linalg.norm(plain.positions.numpy(), axis=1)))
+    r = float(np.median(np.linalg.norm(retried.positions.numpy(), axis=1)))
+    assert rep0.truncation_voxels == 3.0 and rep0.carved_fraction is None
+    assert r0 < 0.24 * 1.03 + 0.005, r0  # shrunk to the inner sphere (its outer layer: 1.03 r)
+    assert rep.truncation_voxels == pytest.approx(0.3 * max(rep.grid), rel=0.02)  # 0.3 of the fused box's side
+    assert rep.carved_fraction > 0.1 and any("carved away" in n for n in rep.notes)
+    assert abs(r - 0.3 * 1.03) < 0.02, r  # the middle sphere
+    # views that agree: nothing carved, the object default kept
+    agree = layers[1]
+    kept, rep2 = soup_to_surface(agree, cams, lambda n: _render(agree, cams[n]), box,
+                                 SurfaceConfig(resolution=64, retry_truncations=(0.1, 0.3)))
+    assert rep2.truncation_voxels == 3.0 and rep2.carved_fraction <= 0.1, rep2.carved_fraction
+    assert abs(float(np.median(np.linalg.norm(kept.positions.numpy(), axis=1))) - 0.3 * 1.03) < 0.02
+
+
+def test_carved_fraction_counts_what_the_views_saw_and_the_surface_lost():
+    """A camera looks at a plane (its soup depth); a surface at the plane carves nothing, a surface with the
+    plane's right half missing carves half of it, and pixels that see a point outside the box do not count."""
+    from trisplat.train.switch import carved_fraction
+
+    cam = look_at([0.0, 0.0, 2.0], size=32, focal=32.0)
+    soup_depth = np.full((32, 32), 2.0, np.float32)  # the plane z = 0 seen head-on
+    verts = np.array([[-2.0, -2.0, 0.0], [2.0, -2.0, 0.0], [2.0, 2.0, 0.0], [-2.0, 2.0, 0.0]])
+    whole = np.array([[0, 1, 2], [0, 2, 3]])
+    box = np.array([[-2.0, -2.0, -1.0], [2.0, 2.0, 1.0]])
+    assert carved_fraction(verts, whole, [cam], [soup_depth], box, 0.05) == 0.0
+    # keep only the x < 0 half: the camera's image x runs along world x or against it; either way half is lost
+    half_v = np.array([[-2.0, -2.0, 0.0], [0.0, -2.0, 0.0], [0.0, 2.0, 0.0], [-2.0, 2.0, 0.0]])
+    assert carved_fraction(half_v, whole, [cam], [soup_depth], box, 0.05) == pytest.approx(0.5, abs=0.04)
+    # the same plane farther than the soup by more than the tolerance: all of it carved
+    far = verts - [0.0, 0.0, 0.2]
+    assert carved_fraction(far, whole, [cam], [soup_depth], box, 0.05) == 1.0
+    # pixels whose soup point lies outside the box say nothing, unknown ones (nan) neither
+    above = np.array([[-2.0, -2.0, 0.5], [2.0, 2.0, 1.0]])
+    assert carved_fraction(far, whole, [cam], [soup_depth], above, 0.05) == 0.0
+    unknown = soup_depth.copy()
+    unknown[:, :16] = np.nan
+    assert carved_fraction(far, whole, [cam], [unknown], box, 0.05) == 1.0
+    assert carved_fraction(half_v, whole, [cam], [unknown], box, 0.05) in (0.0, 1.0)  # one half known, all or none
