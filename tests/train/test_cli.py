@@ -46,3 +46,13 @@ def test_final_line_puts_the_files_score_first_and_says_when_not_to_trust_it():
     m["health"] = {"ok": False, "problems": ["the mesh covers 95.0% of the test pixels (holes; below 99%)"]}
     lines = final_lines(m, 60.0, "r")
     assert "NOT trustworthy" in lines[0] and lines[1] == "  problem: " + m["health"]["problems"][0]
+
+
+def test_final_line_says_how_many_pieces_a_surface_came_out_in():
+    from trisplat.commands.train import result_shape
+
+    m = {"connected": True, "mesh": {"connected_components": 1, "largest_component_fraction": 1.0}}
+    assert result_shape(m) == "one connected surface"
+    m["mesh"] = {"connected_components": 7, "largest_component_fraction": 0.366}
+    assert result_shape(m) == "a connected surface in 7 pieces (the largest holds 37% of the faces)"
+    assert result_shape({"connected": True}) == "one connected surface"  # older metrics.json without mesh stats

@@ -300,8 +300,14 @@ def choose_downscale(args: TrainArgs, explicit: set[str]) -> TrainArgs:
 
 def result_shape(m: dict) -> str:
     """What a finished run's mesh is, for its final line, from its metrics.json: one connected surface, or a soup
-    and why (asked for with --output soup, the switch failed or was given up, or the run ended before its switch)."""
+    and why (asked for with --output soup, the switch failed or was given up, or the run ended before its switch).
+    A surface that came out in several pieces says how many, and the largest one's share of the faces."""
     if m.get("connected"):
+        mesh = m.get("mesh") or {}
+        pieces = int(mesh.get("connected_components", 1) or 1)
+        if pieces > 1:
+            return (f"a connected surface in {pieces} pieces (the largest holds "
+                    f"{100 * float(mesh.get('largest_component_fraction', 0.0)):.0f}% of the faces)")
         return "one connected surface"
     failure = m.get("switch_failure") or {}
     error = str(failure.get("error", "")).splitlines()[0][:160] if failure else ""
