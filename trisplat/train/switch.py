@@ -54,8 +54,8 @@ class SurfaceConfig:
     the views that see past it vote its space free. A larger truncation averages them; it also rounds fine detail
     off (fox: 0.3 dB less straight after the switch at 8 voxels, 1 dB at 20), so it is used only where needed."""
     max_carved: float = 0.1
-    """see retry_truncations (measured: fox's surface at 3 voxels carves 3.4%, bonsai's 23.6% at 3 voxels and 4.1% at
-    8)."""
+    """see retry_truncations (measured: fox's surface at 3 voxels carves 3.4-3.5% of what its views saw, bonsai's
+    6.3% with poses whose switch kept the table; the synthetic three-sphere soup of tests/train/test_switch.py 68%)."""
     carved_check_views: int = 16
     """views (evenly spaced over the training views) that carved_fraction renders the fused surface in."""
     face_ratio: float = 8.0
