@@ -43,10 +43,6 @@ class SurfaceConfig:
     """grid size cap (memory: about 9 bytes per voxel; time: voxels x views projections)."""
     truncation_voxels: float = 3.0
     """TSDF truncation distance."""
-    min_truncation: float = 0.0
-    """the truncation is at least this fraction of the fused box's longest side (scene units, whatever the grid's
-    resolution): a soup whose views disagree about where a surface is by more than the truncation gets that surface
-    carved away by the views that see past it (0: truncation_voxels alone)."""
     retry_truncations: tuple[float, ...] = ()
     """truncations (fractions of the fused box's longest side) to fuse with in turn while the surface carves away
     more than `max_carved` of what the views saw (carved_fraction): a real capture's soup can put a surface at
@@ -270,6 +266,7 @@ def carved_fraction(verts: np.ndarray, faces: np.ndarray, cameras: Sequence, dep
     [F,3]) shows nothing, or something more than `tolerance` (scene units) farther away: what the views saw and the
     fusion carved away. `views` evenly spaced cameras of `cameras` are rendered (z-buffer), against their soup depth
     maps in `depths` (inf: nothing seen, nan: unknown, both not counted)."""
+    from trisplat.data.rgbd import backproject
     from trisplat.render.hard import rasterize_hard
 
     pts = torch.as_tensor(verts, dtype=torch.float32)
@@ -280,22 +277,19 @@ def carved_fraction(verts: np.ndarray, faces: np.ndarray, cameras: Sequence, dep
     for n in np.unique(np.linspace(0, len(cameras) - 1, max(1, min(views, len(cameras)))).round().astype(int)):
         cam, d = cameras[n], np.asarray(depths[n])
         H, W = d.shape
-        ys, xs = np.nonzero(np.isfinite(d))
-        if len(ys) == 0:
-            continue
-        z = d[ys, xs].astype(np.float64)
-        rays = np.stack([xs + 0.5, ys + 0.5, np.ones(len(xs))], 1) @ np.linalg.inv(np.asarray(cam.K)).T
         w2c = np.asarray(cam.world_to_camera, dtype=np.float64)
-        world = (rays * z[:, None] - w2c[:3, 3]) @ w2c[:3, :3]  # R^T (x_cam - t)
+        # the soup's surface points of the pixels that saw something (inf: nothing, nan: unknown)
+        world, rc = backproject(np.where(np.isfinite(d), d, 0.0), np.asarray(cam.K), np.linalg.inv(w2c), 1)
         inside = ((world >= b[0]) & (world <= b[1])).all(1)
         if not inside.any():
             continue
+        ys, xs = rc[inside, 0], rc[inside, 1]
         out = rasterize_hard(pts, tri, grey, torch.as_tensor(w2c, dtype=torch.float32),
                              torch.as_tensor(np.asarray(cam.K), dtype=torch.float32), W, H)
         mesh = out.depth.reshape(H, W).numpy().astype(np.float64)
         mesh = np.where(out.face_id.reshape(H, W).numpy() >= 0, mesh, np.inf)
-        seen += int(inside.sum())
-        carved += int((mesh[ys, xs][inside] > z[inside] + tolerance).sum())
+        seen += len(ys)
+        carved += int((mesh[ys, xs] > d[ys, xs] + tolerance).sum())
     return carved / max(seen, 1)
 
 
@@ -427,7 +421,7 @@ def soup_to_surface(scene: TriangleScene, cameras: Sequence, render: Callable[[i
     res = fitting_resolution(box, config.resolution, config.max_voxels)
     rep.grid, rep.voxel = grid_shape(box, res)
     side = float((box[1] - box[0]).max())
-    truncations = [max(config.truncation_voxels, config.min_truncation * side / rep.voxel)]
+    truncations = [config.truncation_voxels]
     truncations += [f * side / rep.voxel for f in config.retry_truncations if f * side / rep.voxel > truncations[-1]]
     max_depth = max(config.max_depth_fraction * side, MIN_DEPTH_VOXELS * rep.voxel)
     # the depth maps outlive the fusion (seen faces, photo colours): in memory up to depth_memory_mb, then on disk
