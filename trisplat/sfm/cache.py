@@ -21,13 +21,9 @@ def default_poses_cache() -> Path:
     return default_cache_dir() / "poses"
 
 
-def file_digest(path: Path) -> str:
-    """SHA-1 of a file's bytes (read in 1 MiB blocks)."""
-    h = hashlib.sha1()
+def _sha1(path: Path) -> str:
     with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
+        return hashlib.file_digest(f, "sha1").hexdigest()
 
 
 def fingerprint(source: Path, options: PosesOptions) -> dict:
@@ -39,7 +35,7 @@ def fingerprint(source: Path, options: PosesOptions) -> dict:
     files = [source] if is_video(source) else find_images(source)
     opts = asdict(replace(options, force=False, verbose=False))
     return {"pipeline": POSES_VERSION, "source": str(source),
-            "files": [[p.name, p.stat().st_size, file_digest(p)] for p in files],
+            "files": [[p.name, p.stat().st_size, _sha1(p)] for p in files],
             "options": opts}
 
 
