@@ -198,3 +198,34 @@ def test_dense_tracker_jacobian_matches_finite_differences():
             # central image gradients vs the bilinear patch's slope: equal up to the smooth images' curvature
             err = np.median(np.abs(J[:, k] - fd)) / max(np.median(np.abs(fd)), 1e-9)
             assert err < 0.05, (key, k, err)
+
+
+def test_dense_tracker_normal_equations_kernel_matches_the_numpy_reference():
+    """track_kernels.normal_equations (one Numba pass) against _normal_equations_reference (numpy, from _residuals):
+    the same points kept, robust cost, J^T W J and J^T W r, with the photometric term and without, with outliers,
+    depth edges and points leaving the image."""
+    from trisplat.slam.track import _make_level, _normal_equations, _normal_equations_reference
+
+    rng = np.random.default_rng(0)
+    H, W = 60, 80
+    K = np.array([[70.0, 0, 40.0], [0, 70.0, 30.0], [0, 0, 1]])
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    depth = 2.0 + 0.1 * np.sin(u / 20) + 0.1 * np.cos(v / 15)
+    depth[20:30, 50:60] += 0.5  # a box in front: depth edges
+    depth[rng.random((H, W)) < 0.02] = 0.0  # missing depth
+    grey = 0.5 + 0.3 * np.sin(u / 10) * np.cos(v / 13) + 0.05 * rng.standard_normal((H, W))
+    obs_depth = depth + 0.02 * rng.standard_normal((H, W)) * (depth > 0)  # residuals on both sides of Huber's k
+    rgb = np.repeat(grey[..., None], 3, axis=2)
+    for photo_flat in (False, True):
+        obs_rgb = np.full_like(rgb, 0.4) if photo_flat else rgb[:, ::-1] * 0.9 + 0.05
+        cfg = TrackConfig(outlier_depth=0.05)
+        L = _make_level(rgb, depth, depth > 0, obs_rgb, obs_depth, K, cfg)
+        assert L.photo is not photo_flat
+        T = exp_se3(torch.tensor([0.03, -0.02, 0.01, 0.02, -0.01, 0.015], dtype=torch.float64)).numpy()
+        for w_photo in (1.0, 0.3):
+            c_ref, n_ref, H_ref, g_ref = _normal_equations_reference(L, T, cfg, w_photo)
+            c, n, Hk, gk = _normal_equations(L, T, cfg, w_photo)
+            assert 500 < n == n_ref < len(L.X)  # some points dropped (outliers, edges, outside), most kept
+            assert c == pytest.approx(c_ref, rel=1e-9)
+            np.testing.assert_allclose(Hk, H_ref, rtol=1e-9, atol=1e-9 * np.abs(H_ref).max())
+            np.testing.assert_allclose(gk, g_ref, rtol=1e-9, atol=1e-9 * np.abs(g_ref).max())
