@@ -14,6 +14,7 @@ import torch
 
 from trisplat.render.rasterize import rasterize
 from trisplat.slam.se3 import exp_se3
+from trisplat.slam.track_kernels import normal_equations
 from trisplat.train.losses import photometric
 
 IDENTITY = torch.eye(4, dtype=torch.float64)
@@ -347,8 +348,6 @@ def _normal_equations_reference(L: _Level, T: np.ndarray, cfg: TrackConfig, w_ph
 def _normal_equations(L: _Level, T: np.ndarray, cfg: TrackConfig, w_photo: float):
     """What _normal_equations_reference computes, in one Numba pass (track_kernels; 5x less of the tracker's time
     than the numpy arrays of every point's residuals and Jacobians)."""
-    from trisplat.slam.track_kernels import normal_equations
-
     cost, n, H, g = normal_equations(L.X, L.Ir, L.Io, L.gIo[0], L.gIo[1], L.Do, L.gDo[0], L.gDo[1], L.Dbad, L.K,
                                      np.ascontiguousarray(T, np.float64), float(cfg.outlier_depth),
                                      float(cfg.depth_sigma), float(cfg.photo_sigma), float(cfg.huber),

@@ -76,11 +76,9 @@ def _return_freed_memory() -> None:
     stays in the process's resident memory; the next allocations (the rows, twice while they are sorted) then add to
     it instead of reusing it."""
     import ctypes
-    import ctypes.util
 
-    name = ctypes.util.find_library("c")
     try:
-        ctypes.CDLL(name).malloc_trim(0)
+        ctypes.CDLL(None).malloc_trim(0)  # the process's own symbols, libc's among them
     except (OSError, AttributeError, TypeError):  # not glibc (macOS, Windows, musl without it)
         pass
 
