@@ -61,3 +61,17 @@ def test_supersampled_edges_average_in_linear_light(tmp_path):
     edge = img[20, 10, 0]  # half black, half white samples
     assert edge == pytest.approx(float(linear_to_srgb(np.array([0.5]))[0]), abs=1e-4)
     assert float(srgb_to_linear(np.array([edge]))[0]) == pytest.approx(0.5, abs=1e-4)
+
+
+def test_vertex_colour_asset_renders_as_its_glb_does(tmp_path):
+    """A PLY's sRGB vertex colours in memory render as the same mesh written as a GLB (linear COLOR_0) does: decoded,
+    interpolated in linear light, encoded; a black / white gradient is 0.735 (sRGB of 0.5 linear) half-way, not 0.5."""
+    from trisplat.eval.spec_render import vertex_colour_asset
+
+    colours = np.array([[0, 0, 0], [1, 1, 1], [1, 1, 1], [0, 0, 0]], np.float64)  # black left, white right
+    from_file = _render(tmp_path, colors=colours)
+    direct = render_asset(vertex_colour_asset(QUAD, FACES, colours), W2C, K, 40, 40, (1.0, 1.0, 1.0))
+    assert np.abs(direct - from_file).max() < 2e-3
+    assert abs(direct[20, 20, 0] - linear_to_srgb(0.5 / 20 + 0.5)) < 5e-3  # pixel 20's centre is at u = 0.525
+    with pytest.raises(ValueError, match="colours"):
+        vertex_colour_asset(QUAD, FACES, colours[:3])

@@ -345,3 +345,23 @@ def test_transfer_attributes_weights_neighbours_by_opacity_over_distance():
     one_sh, one_op = transfer_attributes(scene, pts, neighbours=1)
     np.testing.assert_allclose(one_sh[:, 0, 0].numpy(), [1.0, 1.0, -1.0])
     np.testing.assert_allclose(one_op.numpy(), [0.8, 0.8, 0.2], rtol=1e-6)
+
+
+def test_unseen_space_cut_matches_scipys_distance_transform():
+    """The cut of unseen space (edt's multi-threaded distance transform) equals the same rule computed with
+    scipy.ndimage's exact Euclidean distance transform, voxel for voxel."""
+    from scipy import ndimage
+
+    from trisplat.mesh.fusion import TSDFVolume
+
+    cams = fibonacci_cameras(12)[:6]  # one side only: occluded space behind the sphere
+    vol = TSDFVolume(np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]), resolution=40, truncation_voxels=3.0)
+    vol.integrate(cams, [sphere_depth(c, np.zeros(3), 0.6) for c in cams])
+    max_depth = 0.15
+    got = vol.grid(max_depth).sdf
+    want = vol.grid().sdf
+    dist = ndimage.distance_transform_edt(~vol.band, sampling=vol.voxel)
+    ramp = np.clip((dist - max_depth) / vol.truncation, -1.0, 1.0).astype(np.float32)
+    want = np.where(want < 0, np.maximum(want, ramp), want)
+    assert (want == 1.0).sum() > (vol.grid().sdf == 1.0).sum()  # the cut frees some occluded voxels
+    np.testing.assert_allclose(got, want, atol=1e-5)

@@ -114,6 +114,34 @@ def test_downscale_depth_keeps_edges_invalid():
     np.testing.assert_allclose(out, [[1.0, 2.0], [0.0, 0.0]])  # edge block (1..3) and mostly-invalid block -> 0
 
 
+@pytest.mark.parametrize("f", [2, 3])
+def test_downscaling_matches_a_per_block_reference(f):
+    """The strided-slice box filter and edge-aware depth downscale agree with a readable loop over the blocks."""
+    from trisplat.data.rgbd_stream import _box_down
+
+    rng = np.random.default_rng(f)
+    H, W = 7 * f + f - 1, 5 * f + f - 1  # rows / columns beyond the last whole block are dropped
+    rgb = rng.random((H, W, 3)).astype(np.float32)
+    depth = np.repeat(np.repeat(rng.uniform(1.0, 3.0, (7, 5)), f, 0), f, 1).astype(np.float32)
+    depth = np.pad(depth, ((0, f - 1), (0, f - 1)), constant_values=1.0)
+    depth[rng.random(depth.shape) < 0.3] = 0.0
+    depth[0:f, 0:f] = 1.0
+    depth[0, 0] = 1.5  # a block spanning a depth edge (max / min > 1.1)
+    want_rgb = np.zeros((7, 5, 3))
+    want_d = np.zeros((7, 5))
+    for i in range(7):
+        for j in range(5):
+            want_rgb[i, j] = rgb[i * f:(i + 1) * f, j * f:(j + 1) * f].mean(axis=(0, 1))
+            b = depth[i * f:(i + 1) * f, j * f:(j + 1) * f]
+            v = b[b > 0]
+            if 2 * len(v) >= f * f and v.max() <= 1.1 * v.min():
+                want_d[i, j] = v.mean()
+    np.testing.assert_allclose(_box_down(rgb, f), want_rgb, rtol=1e-5, atol=1e-6)
+    got = downscale_depth(depth, f)
+    assert got[0, 0] == 0.0 and (got > 0).sum() >= 3
+    np.testing.assert_allclose(got, want_d, rtol=1e-5)
+
+
 def test_real_sevenscenes_and_redwood():
     s = open_stream(shared_data("sevenscenes_rgbd"))
     assert s.format == "7scenes" and len(s) == 400 and s.has_reference

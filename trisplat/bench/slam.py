@@ -10,7 +10,9 @@ the largest vertex-connected piece (trisplat.mesh.stats), the Chamfer distance (
 two mean nearest-sample distances, metres) and F-score between the method's mesh and a TSDF mesh fused from the same
 frames at the reference poses (each mesh moved into the reference's world by the rigid alignment of its whole
 poses, rotations included, onto the reference poses), and
-trisplat's held-out PSNR / depth L1 (from its metrics.json). The 1-minute load average before and after each method
+trisplat's held-out PSNR / depth L1 (from its metrics.json: its map rendered at frames that were not keyframes),
+and the PSNR of each method's mesh.ply at the same frames (vertex colours shown unlit, as a viewer shows them: what
+a user of the mesh gets; trisplat.slam.system.evaluate_mesh_frames). The 1-minute load average before and after each method
 is recorded: the machine may be shared.
 
 Open3D is a benchmark dependency (`pip install open3d-cpu`, or the `bench` extra); this suite stops at once, naming
@@ -37,7 +39,7 @@ DEFAULT_CAPTURE = Path(__file__).resolve().parents[2].parent / "shared" / "data"
 METHODS = ("trisplat", "open3d")
 COLUMNS = ["method", "frames", "resolution", "ATE RMSE m", "ATE max m", "RPE m/s", "RPE deg/s", "wall s", "frames/s", "mesh faces",
            "largest component", "Chamfer m", "accuracy m", "completeness m", "F-score", "held-out PSNR",
-           "held-out depth L1 m", "load before", "load after"]  # fmt: skip
+           "held-out depth L1 m", "held-out PSNR of mesh.ply", "load before", "load after"]  # fmt: skip
 
 
 @dataclass
@@ -127,6 +129,26 @@ def score_run(run_dir: Path, ref_c2w: list, reference, samples: int, stamps: lis
     return out
 
 
+def mesh_psnr(run_dir: Path, stream, ids: list[int], frames: list[int], downscale: int) -> dict:
+    """PSNR of a method's mesh.ply (sRGB vertex colours, shown unlit as a viewer shows them) at its own tracked
+    poses of the given frames (numbers in the benchmark's sequence): the picture a user of its mesh gets."""
+    import trimesh
+
+    from trisplat.slam.system import evaluate_mesh_frames
+    from trisplat.slam.trajectory import read_tum_trajectory
+
+    path = run_dir / "mesh.ply"
+    if not path.is_file():
+        return {"frames": 0, "psnr": None, "ssim": None}
+    mesh = trimesh.load(path, process=False)
+    cols = getattr(mesh.visual, "vertex_colors", None)
+    if cols is None or len(cols) != len(mesh.vertices):
+        raise ValueError(f"{path}: no vertex colours to score")
+    _, est = read_tum_trajectory(run_dir / "trajectory.txt")
+    return evaluate_mesh_frames(stream, np.asarray(mesh.vertices), np.asarray(mesh.faces),
+                                np.asarray(cols, np.float64)[:, :3] / 255.0, list(est), ids, frames, downscale)
+
+
 def _run_trisplat(args: SlamBenchArgs, run_dir: Path, extra: list[str]) -> dict:
     from trisplat.commands.slam import main as slam_main
 
@@ -183,6 +205,7 @@ def main(argv: list[str]) -> int:
     reference = load_surface(ref_ply) if ref_info["faces"] else None
 
     table = BenchTable("slam", COLUMNS)
+    held_frames = list(range(0, len(ids), 10))  # every 10th frame, unless trisplat's run names its held-out frames
     details: dict = {"capture": str(args.capture), "frames": len(ids), "stride": args.stride,
                      "downscale": args.downscale, "resolution": [W, H], "trisplat_slam_extra_args": extra,
                      "reference_tsdf_mesh": ref_info, "methods": {}}
@@ -200,11 +223,14 @@ def main(argv: list[str]) -> int:
         ate, mesh, geo = scores["ate"] or {}, scores["mesh"] or {}, scores["geometry"] or {}
         rpe = scores["rpe"] or {}
         held = metrics.get("held_out") or {}
+        if held.get("frame_numbers"):
+            held_frames = list(held["frame_numbers"])
+        scores["held_out_mesh"] = mesh_psnr(run_dir, stream, ids, held_frames, args.downscale)
         row = [method, len(ids), f"{W}x{H}", ate.get("rmse_m"), ate.get("max_m"), rpe.get("translation_m_per_s"),
                rpe.get("rotation_deg_per_s"), wall, len(ids) / max(wall, 1e-9),
                mesh.get("num_faces"), mesh.get("largest_component_fraction"), geo.get("chamfer"),
                geo.get("accuracy"), geo.get("completeness"), geo.get("fscore"), held.get("psnr"),
-               held.get("depth_l1_m"), load0, load1]
+               held.get("depth_l1_m"), scores["held_out_mesh"]["psnr"], load0, load1]
         table.add(*row)
         details["methods"][method] = {"wall_seconds": wall, "cpu_seconds": cpu, "load_before": load0,
                                       "load_after": load1, "run_dir": str(run_dir), "metrics": metrics, **scores}
@@ -224,7 +250,9 @@ def main(argv: list[str]) -> int:
         f"its poses (rotations and centres) onto the reference poses, {args.chamfer_samples} samples a side "
         "(trisplat.eval.geometry); the reference is fused from the same depth maps by the same TSDF as the Open3D "
         "baseline, which favours the baseline's Chamfer. Held-out: trisplat's frames "
-        "that were not keyframes, rendered at their tracked poses (its metrics.json). Open3D: "
+        "that were not keyframes, rendered at their tracked poses (its metrics.json). Held-out PSNR of mesh.ply: "
+        "each method's mesh (vertex colours, unlit, 2x2 samples, black where empty) at its own poses of the same frames "
+        "(trisplat's held-out frames when trisplat ran; Open3D fused every frame, those included). Open3D: "
         "RGB-D odometry (hybrid term) frame to frame + UniformTSDFVolume (trisplat.slam.open3d_baseline). "
         "Load = 1-minute load average before and after each method (the machine may be shared)."
         + (f" trisplat slam extra options: `{' '.join(extra)}`." if extra else ""))

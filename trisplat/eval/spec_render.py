@@ -63,6 +63,19 @@ def prepare_asset(asset: GltfAsset, transform: np.ndarray | None = None) -> Prep
                          uv, col, fac, tex, wrap, np.asarray(offs), lit)
 
 
+def vertex_colour_asset(positions, faces, colours) -> PreparedAsset:
+    """A mesh with sRGB vertex colours in [0,1] (as a PLY holds them) as the unlit, double-sided asset a viewer
+    shows: the colours decoded to linear, then interpolated (what the same mesh written as a GLB holds in COLOR_0)."""
+    positions = np.asarray(positions, np.float64)
+    faces = np.asarray(faces, np.int64)
+    colours = np.asarray(colours, np.float64)
+    if positions.ndim != 2 or positions.shape[1] != 3 or colours.shape != positions.shape:
+        raise ValueError(f"positions {positions.shape} and colours {colours.shape} must both be [V,3]")
+    lin = np.concatenate([srgb_to_linear(np.clip(colours, 0.0, 1.0)), np.ones((len(colours), 1))], axis=1)
+    return PreparedAsset(positions, faces, np.zeros(len(faces), np.int64), np.zeros(len(faces), bool), [None], [lin],
+                         [np.ones(4)], [None], [None], np.zeros(1, np.int64), 0)
+
+
 def render_asset(asset: PreparedAsset, world_to_camera: np.ndarray, K: np.ndarray, width: int, height: int,
                  background=(1.0, 1.0, 1.0), supersample: int = 1, near: float = 0.01) -> np.ndarray:
     """float32 [H,W,3] sRGB display values in [0,1] of `asset` seen from the camera (OpenCV axes, the asset's

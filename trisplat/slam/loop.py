@@ -268,23 +268,38 @@ def candidates(c2ws: list[np.ndarray], new: int, cfg: LoopConfig) -> list[int]:
     return [k for _, k in sorted(out)[: cfg.candidates]]
 
 
-def _residuals(x, T0, edges, sig):
-    n = len(T0)
-    R0 = Rotation.from_matrix(T0[:, :3, :3])
+@dataclass
+class _Graph:
+    """The pose graph's constants, prepared once per optimisation (the residuals are evaluated many times)."""
+
+    R0: Rotation  # every keyframe's camera-to-world rotation at the start
+    t0: np.ndarray  # [n,3] their centres
+    ii: np.ndarray  # [E] each edge's first node
+    jj: np.ndarray  # [E] its second
+    Zr_inv: Rotation  # the inverse of each edge's measured relative rotation
+    Zt: np.ndarray  # [E,3] its measured relative translation
+    w: np.ndarray  # [E,2] its standard deviations (metres, radians)
+
+    @staticmethod
+    def of(T0: np.ndarray, edges, sig) -> _Graph:
+        return _Graph(Rotation.from_matrix(T0[:, :3, :3]), T0[:, :3, 3].copy(), np.array([e.i for e in edges]),
+                      np.array([e.j for e in edges]),
+                      Rotation.from_matrix(np.array([e.Z[:3, :3] for e in edges])).inv(),
+                      np.array([e.Z[:3, 3] for e in edges]),
+                      np.array([[sig[e.loop][0], sig[e.loop][1]] for e in edges]))
+
+
+def _residuals(x, g: _Graph):
+    n = len(g.t0)
     dx = np.concatenate([np.zeros((1, 6)), x.reshape(n - 1, 6)])
-    R = R0 * Rotation.from_rotvec(dx[:, 3:])  # right perturbation of each camera-to-world rotation
-    t = T0[:, :3, 3] + dx[:, :3]
-    ii = np.array([e.i for e in edges])
-    jj = np.array([e.j for e in edges])
-    Zr = Rotation.from_matrix(np.array([e.Z[:3, :3] for e in edges]))
-    Zt = np.array([e.Z[:3, 3] for e in edges])
-    Ri_inv = R[ii].inv()
-    rel_t = Ri_inv.apply(t[jj] - t[ii])
-    rel_R = Ri_inv * R[jj]
-    er = (Zr.inv() * rel_R).as_rotvec()
-    et = Zr.inv().apply(rel_t - Zt)
-    w = np.array([[sig[e.loop][0], sig[e.loop][1]] for e in edges])
-    return np.concatenate([et / w[:, :1], er / w[:, 1:]], 1).ravel()
+    R = g.R0 * Rotation.from_rotvec(dx[:, 3:])  # right perturbation of each camera-to-world rotation
+    t = g.t0 + dx[:, :3]
+    Ri_inv = R[g.ii].inv()
+    rel_t = Ri_inv.apply(t[g.jj] - t[g.ii])
+    rel_R = Ri_inv * R[g.jj]
+    er = (g.Zr_inv * rel_R).as_rotvec()
+    et = g.Zr_inv.apply(rel_t - g.Zt)
+    return np.concatenate([et / g.w[:, :1], er / g.w[:, 1:]], 1).ravel()
 
 
 def optimise_pose_graph(c2ws: list[np.ndarray], edges: list[Edge], cfg: LoopConfig) -> tuple[list[np.ndarray], dict]:
@@ -302,8 +317,9 @@ def optimise_pose_graph(c2ws: list[np.ndarray], edges: list[Edge], cfg: LoopConf
             if node > 0:
                 S[6 * k : 6 * k + 6, 6 * (node - 1) : 6 * node] = 1
     x0 = np.zeros(6 * (n - 1))
-    r0 = _residuals(x0, T0, edges, sig)
-    sol = least_squares(_residuals, x0, args=(T0, edges, sig), jac_sparsity=S, method="trf", x_scale="jac",
+    graph = _Graph.of(T0, edges, sig)
+    r0 = _residuals(x0, graph)
+    sol = least_squares(_residuals, x0, args=(graph,), jac_sparsity=S, method="trf", x_scale="jac",
                         xtol=1e-10, ftol=1e-10, max_nfev=100)
     dx = np.concatenate([np.zeros((1, 6)), sol.x.reshape(n - 1, 6)])
     R = Rotation.from_matrix(T0[:, :3, :3]) * Rotation.from_rotvec(dx[:, 3:])

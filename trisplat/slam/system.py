@@ -541,6 +541,30 @@ def evaluate_frames(stream: RGBDStream, smap: SlamMap, c2ws, ids, frame_numbers,
     return {"frames": len(frame_numbers), "psnr": mean(ps), "ssim": mean(ss), "depth_l1_m": mean(dl), "lpips": None}
 
 
+def evaluate_mesh_frames(stream: RGBDStream, verts: np.ndarray, faces: np.ndarray, colours: np.ndarray, c2ws, ids,
+                         frame_numbers, downscale: int, supersample: int = 2) -> dict:
+    """PSNR / SSIM of the mesh a user gets (sRGB vertex colours, unlit, as a viewer shows it:
+    trisplat.eval.spec_render at `supersample` x `supersample` samples, black where it shows nothing) at the tracked
+    poses of the given frames (numbers in the run's sequence)."""
+    from trisplat.eval.image_metrics import psnr, ssim
+    from trisplat.eval.spec_render import render_asset, vertex_colour_asset
+
+    if len(faces) == 0 or not frame_numbers:
+        return {"frames": 0, "psnr": None, "ssim": None}
+    K = stream.K_at(downscale)
+    W, H = stream.size_at(downscale)
+    asset = vertex_colour_asset(verts, faces, colours)
+    ps, ss = [], []
+    for n in frame_numbers:
+        rgb, _ = load_frame(stream, ids[n], downscale)
+        img = render_asset(asset, np.linalg.inv(c2ws[n]), K, W, H, background=(0.0, 0.0, 0.0),
+                           supersample=supersample)
+        ps.append(psnr(img, rgb))
+        ss.append(ssim(img, rgb))
+    return {"frames": len(frame_numbers), "psnr": float(np.mean(ps)), "ssim": float(np.mean(ss)),
+            "supersample": supersample}
+
+
 def map_surface(smap: SlamMap, keyframes: list[Keyframe], stream: RGBDStream, cfg: SlamConfig, log
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
     """The map as one connected surface: its depth rendered at every keyframe's pose, fused (TSDF) and meshed by
@@ -609,7 +633,10 @@ def write_outputs(stream, out: Path, cfg: SlamConfig, state: SlamState, ids, key
         "realtime": ({"input_fps": cfg.input_fps, "dropped_frames": len(state.dropped), "dropped": state.dropped,
                       "hurried_frames": state.hurried} if cfg.realtime else None),
         "loop_closures": [[int(state.keyframe_ids[e.i]), int(state.keyframe_ids[e.j])] for e in state.edges if e.loop],
-        "held_out": evaluate_frames(stream, state.smap, state.c2w, ids, held, cfg),
+        "held_out": {**evaluate_frames(stream, state.smap, state.c2w, ids, held, cfg),
+                     "frame_numbers": [int(n) for n in held]},
+        "held_out_mesh": evaluate_mesh_frames(stream, verts, faces, np.clip(cols, 0, 1), state.c2w, ids, held,
+                                              cfg.downscale),
     }
     ref = [stream.frames[i].reference_c2w for i in ids]
     have = [k for k, r in enumerate(ref) if r is not None]
@@ -620,6 +647,10 @@ def write_outputs(stream, out: Path, cfg: SlamConfig, state: SlamState, ids, key
                           "frames": len(have),
                           "alignment": "rigid SE(3) (Horn/Umeyama, no scale) of estimated onto reference camera centres"}
         log(f"ATE RMSE {rmse * 100:.2f} cm over {len(have)} frames (after rigid SE(3) alignment, no scale)")
+    hm, hs = metrics["held_out"], metrics["held_out_mesh"]
+    if hm["psnr"] is not None:
+        log(f"held-out frames ({hm['frames']}, not keyframes): the map renders {hm['psnr']:.2f} dB"
+            + (f", {MESH} as a viewer shows it {hs['psnr']:.2f} dB" if hs["psnr"] is not None else ""))
     atomic_write_text(out / METRICS, json.dumps(metrics, indent=2))
     log(f"wrote {out / TRAJECTORY}, {out / MODEL}, {out / MESH} ({mesh_info.get('faces', 0)} faces, largest "
         f"component {mesh_info.get('largest_component_fraction', 0):.1%}), {out / METRICS}")

@@ -205,7 +205,9 @@ def _level_gn(pc0, faces, colors, opacities, sigma, rgb, depth, K, cfg: TrackCon
 
 
 def _grey(rgb: np.ndarray) -> np.ndarray:
-    return rgb[..., :3].mean(-1) if rgb.ndim == 3 else rgb
+    if rgb.ndim != 3:
+        return rgb
+    return (rgb[..., 0] + rgb[..., 1] + rgb[..., 2]) * (1.0 / 3.0)  # the channels' mean (faster than .mean(-1))
 
 
 def _edges(depth: np.ndarray, frac: float) -> np.ndarray:
@@ -284,8 +286,9 @@ def _coverage(L: _Level, T: np.ndarray, outlier: float) -> tuple[float, float]:
     hit = (d > 0) & (np.abs(d - z) < outlier)
     if not hit.any():
         return 0.0, 0.0
-    pix = np.unique(v[hit] * w + u[hit])
-    return len(pix) / max(1, L.n_valid), float(np.abs(d[hit] - z[hit]).mean())
+    landed = np.zeros(h * w, np.bool_)  # distinct pixels landed on (a mask: np.unique's sort is slower)
+    landed[v[hit] * w + u[hit]] = True
+    return int(np.count_nonzero(landed)) / max(1, L.n_valid), float(np.abs(d[hit] - z[hit]).mean())
 
 
 def _residuals(L: _Level, T: np.ndarray, cfg: TrackConfig) -> dict:
