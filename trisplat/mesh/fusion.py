@@ -45,32 +45,106 @@ class FusionGrid:
     truncation: float
 
 
+def fuse_reference(dims, origin, voxel, w2c, K, sizes, depths, trunc, near, occ_w, sdf_sum, w_sum, in_view, band):
+    """The votes of a batch of views added to the accumulators, voxel by voxel and view by view: the readable rule
+    (pure Python, for tests on small grids) that `_fuse_kernel` computes."""
+    for i in range(dims[0]):
+        for j in range(dims[1]):
+            for k in range(dims[2]):
+                p = origin + (np.array([i, j, k]) + 0.5) * voxel
+                s_acc, w_acc, n_in, n_band = 0.0, 0.0, 0, 0
+                for v in range(len(w2c)):
+                    c = w2c[v][:3, :3] @ p + w2c[v][:3, 3]
+                    if c[2] <= near:
+                        continue  # behind the camera
+                    u = (K[v][0, 0] * c[0] + K[v][0, 1] * c[1]) / c[2] + K[v][0, 2]
+                    w = K[v][1, 1] * c[1] / c[2] + K[v][1, 2]
+                    if u < 0 or w < 0 or int(u) >= sizes[v][0] or int(w) >= sizes[v][1]:
+                        continue  # outside the image
+                    d = depths[v][int(w), int(u)]
+                    if np.isnan(d):
+                        continue  # unknown: this view says nothing about the voxel
+                    n_in += 1
+                    sd = 1.0 if np.isinf(d) else min((d - c[2]) / trunc, 1.0)
+                    if sd < -1.0:
+                        s_acc -= occ_w  # behind the surface this view saw: occluded, a weak vote for solid
+                        continue
+                    n_band += int(sd < 1.0)  # within the truncation band of a measured surface
+                    s_acc += sd
+                    w_acc += 1.0
+                if n_in:
+                    sdf_sum[i, j, k] += s_acc
+                    w_sum[i, j, k] += w_acc
+                    in_view[i, j, k] = True
+                    band[i, j, k] |= n_band > 0
+
+
+@nb.njit(inline="always")
+def _keep_positive(a, b, lo, hi):
+    """[lo, hi] cut to the k where a + b k > 0 (an empty range has lo > hi)."""
+    if b > 0.0:
+        lo = max(lo, -a / b)
+    elif b < 0.0:
+        hi = min(hi, -a / b)
+    elif a < 0.0:
+        lo = hi + 1.0
+    return lo, hi
+
+
 # fast math without the no-NaN / no-Inf assumptions: depth maps hold both (unknown, nothing seen), and with them
 # the compiler may drop the isnan / isinf tests
 @nb.njit(parallel=True, cache=True, fastmath={"nsz", "arcp", "contract", "afn", "reassoc"})
 def _fuse_kernel(dims, origin, voxel, w2c, K, sizes, depths, trunc, near, occ_w, sdf_sum, w_sum, in_view, band):
     """Add the votes of a batch of views (w2c [B,4,4], K [B,3,3], sizes [B,2], depths [B,H,W]) to the accumulators
-    sdf_sum, w_sum (float32 [X,Y,Z]), in_view, band (bool [X,Y,Z])."""
+    sdf_sum, w_sum (float32 [X,Y,Z]), in_view, band (bool [X,Y,Z]): `fuse_reference`'s rule. Each column of voxels
+    along z meets a view's frustum in one run of k (the camera coordinates are linear in k, so "in front of the
+    camera and inside the image" is a set of linear inequalities in k): only that run, widened by one voxel each
+    side, is visited, with the same per-voxel tests, so most voxel-view pairs of a room or a large box are never
+    touched."""
     X, Y, Z = dims[0], dims[1], dims[2]
     n_views = w2c.shape[0]
     for i in nb.prange(X):
         x = origin[0] + (i + 0.5) * voxel
+        s_col = np.zeros(Z)
+        w_col = np.zeros(Z)
+        in_col = np.zeros(Z, np.int32)
+        band_col = np.zeros(Z, np.int32)
         for j in range(Y):
             y = origin[1] + (j + 0.5) * voxel
-            for k in range(Z):
-                z = origin[2] + (k + 0.5) * voxel
-                s_acc = 0.0
-                w_acc = 0.0
-                n_in = 0
-                n_band = 0
-                for v in range(n_views):
-                    M = w2c[v]
+            s_col[:] = 0.0
+            w_col[:] = 0.0
+            in_col[:] = 0
+            band_col[:] = 0
+            z0 = origin[2] + 0.5 * voxel
+            for v in range(n_views):
+                M = w2c[v]
+                Kv = K[v]
+                # camera coordinates of voxel k: c0 + dc k; pixel u = nu / cz, w = nw / cz
+                cx0 = M[0, 0] * x + M[0, 1] * y + M[0, 2] * z0 + M[0, 3]
+                cy0 = M[1, 0] * x + M[1, 1] * y + M[1, 2] * z0 + M[1, 3]
+                cz0 = M[2, 0] * x + M[2, 1] * y + M[2, 2] * z0 + M[2, 3]
+                dcx, dcy, dcz = M[0, 2] * voxel, M[1, 2] * voxel, M[2, 2] * voxel
+                nu0 = Kv[0, 0] * cx0 + Kv[0, 1] * cy0 + Kv[0, 2] * cz0
+                dnu = Kv[0, 0] * dcx + Kv[0, 1] * dcy + Kv[0, 2] * dcz
+                nw0 = Kv[1, 1] * cy0 + Kv[1, 2] * cz0
+                dnw = Kv[1, 1] * dcy + Kv[1, 2] * dcz
+                lo, hi = 0.0, Z - 1.0
+                lo, hi = _keep_positive(cz0 - near, dcz, lo, hi)  # in front of the camera
+                lo, hi = _keep_positive(nu0, dnu, lo, hi)  # u > 0
+                lo, hi = _keep_positive(sizes[v, 0] * cz0 - nu0, sizes[v, 0] * dcz - dnu, lo, hi)  # u < width
+                lo, hi = _keep_positive(nw0, dnw, lo, hi)
+                lo, hi = _keep_positive(sizes[v, 1] * cz0 - nw0, sizes[v, 1] * dcz - dnw, lo, hi)
+                if not lo <= hi:
+                    continue
+                k0 = max(0, int(np.floor(lo)) - 1)
+                k1 = min(Z - 1, int(np.ceil(hi)) + 1)
+                for k in range(k0, k1 + 1):
+                    z = origin[2] + (k + 0.5) * voxel
                     cz = M[2, 0] * x + M[2, 1] * y + M[2, 2] * z + M[2, 3]
                     if cz <= near:
                         continue
                     cx = M[0, 0] * x + M[0, 1] * y + M[0, 2] * z + M[0, 3]
                     cy = M[1, 0] * x + M[1, 1] * y + M[1, 2] * z + M[1, 3]
-                    Kv = K[v]
                     u = (Kv[0, 0] * cx + Kv[0, 1] * cy) / cz + Kv[0, 2]
                     w = Kv[1, 1] * cy / cz + Kv[1, 2]
                     if u < 0.0 or w < 0.0:
@@ -82,26 +156,27 @@ def _fuse_kernel(dims, origin, voxel, w2c, K, sizes, depths, trunc, near, occ_w,
                     d = depths[v, row, col]
                     if np.isnan(d):
                         continue  # unknown: this view says nothing about the voxel
-                    n_in += 1
+                    in_col[k] += 1
                     if np.isinf(d):
                         s = 1.0
                     else:
                         s = (d - cz) / trunc
                         if s < -1.0:
                             # behind the surface this view saw: occluded, a weak vote for solid
-                            s_acc -= occ_w
+                            s_col[k] -= occ_w
                             continue
                         if s < 1.0:
-                            n_band += 1  # within the truncation band of a measured surface
+                            band_col[k] += 1  # within the truncation band of a measured surface
                         else:
                             s = 1.0
-                    s_acc += s
-                    w_acc += 1.0
-                if n_in > 0:
-                    sdf_sum[i, j, k] += s_acc
-                    w_sum[i, j, k] += w_acc
+                    s_col[k] += s
+                    w_col[k] += 1.0
+            for k in range(Z):
+                if in_col[k] > 0:
+                    sdf_sum[i, j, k] += s_col[k]
+                    w_sum[i, j, k] += w_col[k]
                     in_view[i, j, k] = True
-                    if n_band > 0:
+                    if band_col[k] > 0:
                         band[i, j, k] = True
 
 
