@@ -78,6 +78,16 @@ def test_slam_mesh_is_one_surface_on_the_true_one(rgbd_capture, tmp_path):
     m = run_slam(stream, out, _cfg(max_frames=6), log=_quiet)
     mesh = trimesh.load(out / "mesh.ply", process=False)
     assert m["mesh"]["method"].startswith("the map's depth") and len(mesh.faces) == m["mesh"]["faces"]
+    from trisplat.io.gltf import read_glb
+
+    glb = read_glb(out / "mesh.glb")  # the same surface for engines: Y-up (so the extents move), linear colours
+    assert sum(len(p.faces) for p in glb.primitives) == len(mesh.faces)
+    assert sorted(np.ptp(glb.primitives[0].positions, axis=0).round(4)) == sorted(np.ptp(mesh.vertices, axis=0).round(4))
+    assert glb.primitives[0].material.unlit
+    from trisplat.io.colour import srgb_to_linear
+
+    ply_linear = srgb_to_linear(np.asarray(mesh.visual.vertex_colors, np.float64)[:, :3] / 255.0)
+    np.testing.assert_allclose(np.sort(glb.primitives[0].color[:, :3].ravel()), np.sort(ply_linear.ravel()), atol=3e-3)
     assert m["mesh"]["largest_component_fraction"] >= 0.9
     assert len(mesh.vertices) / len(mesh.faces) < 0.6  # welded: a soup has 3 vertices per face
     _, est = read_tum_trajectory(out / "trajectory.txt")

@@ -24,6 +24,7 @@ CHECKPOINT = "checkpoint.pt"
 TRAJECTORY = "trajectory.txt"
 MODEL = "model.ply"
 MESH = "mesh.ply"
+MESH_GLB = "mesh.glb"  # the same mesh for engines and viewers: Y-up, linear COLOR_0, unlit (trisplat.io)
 METRICS = "metrics.json"
 CONFIG = "config.json"
 STATE = "state.json"  # {"finished", "step" (frames done), "total_steps", "refined"}, as a training run's
@@ -619,6 +620,7 @@ def write_outputs(stream, out: Path, cfg: SlamConfig, state: SlamState, ids, key
     mesh_info.update(faces=int(len(faces)), vertices=int(len(verts)))
     if len(faces):
         export_mesh(out / MESH, verts, faces, np.clip(cols, 0, 1))
+        export_mesh(out / MESH_GLB, verts, faces, np.clip(cols, 0, 1))
         nc, lab = face_components(faces, len(verts))
         mesh_info.update(components=int(nc), largest_component_fraction=float(np.bincount(lab).max() / len(lab)))
     mesh_info["seconds"] = time.time() - tm
@@ -654,6 +656,6 @@ def write_outputs(stream, out: Path, cfg: SlamConfig, state: SlamState, ids, key
         log(f"held-out frames ({hm['frames']}, not keyframes): the map renders {hm['psnr']:.2f} dB"
             + (f", {MESH} as a viewer shows it {hs['psnr']:.2f} dB" if hs["psnr"] is not None else ""))
     atomic_write_text(out / METRICS, json.dumps(metrics, indent=2))
-    log(f"wrote {out / TRAJECTORY}, {out / MODEL}, {out / MESH} ({mesh_info.get('faces', 0)} faces, largest "
+    log(f"wrote {out / TRAJECTORY}, {out / MODEL}, {out / MESH} and {MESH_GLB} ({mesh_info.get('faces', 0)} faces, largest "
         f"component {mesh_info.get('largest_component_fraction', 0):.1%}), {out / METRICS}")
     return metrics
