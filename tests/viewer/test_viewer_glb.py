@@ -45,4 +45,12 @@ def test_viewer_at_a_test_camera_matches_the_spec_render(textured_run):
     assert shot.shape == ref.shape == (300, 400, 3)
     p = consumers.psnr_u8(shot, ref)
     print(f"viewer vs spec render: {p:.2f} dB")
+    if p < MIN_PSNR_DB:
+        # Chromium's --screenshot is taken when its virtual-time budget runs out; once in a full CI run (loaded
+        # machine) it caught the page before the mesh was on screen (10.4 dB) although the page reported every
+        # triangle drawn, and the same test passed alone and under load. One more screenshot: a viewer that draws
+        # the wrong picture fails both.
+        shot, _, stderr = consumers.viewer_render(textured_run, 0)
+        p = consumers.psnr_u8(shot, ref)
+        print(f"viewer vs spec render, second screenshot: {p:.2f} dB")
     assert p >= MIN_PSNR_DB, f"the viewer's picture of mesh.glb differs from the spec render: {p:.2f} dB"
