@@ -618,9 +618,10 @@ def write_outputs(stream, out: Path, cfg: SlamConfig, state: SlamState, ids, key
     else:
         raise ValueError(f"--slam.mesh must be 'surface' or 'delaunay', got {cfg.mesh!r}")
     mesh_info.update(faces=int(len(faces)), vertices=int(len(verts)))
+    cols = np.clip(cols, 0, 1)  # what the files hold and what is scored
     if len(faces):
-        export_mesh(out / MESH, verts, faces, np.clip(cols, 0, 1))
-        export_mesh(out / MESH_GLB, verts, faces, np.clip(cols, 0, 1))
+        export_mesh(out / MESH, verts, faces, cols)
+        export_mesh(out / MESH_GLB, verts, faces, cols)
         nc, lab = face_components(faces, len(verts))
         mesh_info.update(components=int(nc), largest_component_fraction=float(np.bincount(lab).max() / len(lab)))
     mesh_info["seconds"] = time.time() - tm
@@ -628,7 +629,7 @@ def write_outputs(stream, out: Path, cfg: SlamConfig, state: SlamState, ids, key
     held = [n for n in range(len(ids)) if n not in kf_set][:: max(1, cfg.eval_every)]
     te = time.time()
     held_map = {**evaluate_frames(stream, state.smap, state.c2w, ids, held, cfg), "frame_numbers": [int(n) for n in held]}
-    held_mesh = evaluate_mesh_frames(stream, verts, faces, np.clip(cols, 0, 1), state.c2w, ids, held, cfg.downscale)
+    held_mesh = evaluate_mesh_frames(stream, verts, faces, cols, state.c2w, ids, held, cfg.downscale)
     eval_s = time.time() - te
     metrics = {
         "capture": str(stream.root), "format": stream.format, "frames": len(ids),
