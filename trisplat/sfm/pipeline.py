@@ -1,7 +1,8 @@
 """run_poses: photos or a video -> a COLMAP capture folder (images/, sparse/0) by incremental SfM with pycolmap.
 
 Stages (each with progress): frames (video only), input check, SIFT features, pair selection and matching with
-geometric verification, incremental mapping, undistortion to pinhole, report. Layout of OUT:
+geometric verification, incremental mapping, the registration check (trisplat.sfm.verify: photos placed where their
+own matches disagree are registered again), undistortion to pinhole, report. Layout of OUT:
 
   OUT/images/             undistorted images of the registered views (what `trisplat train` reads)
   OUT/sparse/0/           the PINHOLE COLMAP model of those images (cameras, images, points3D .bin)
@@ -33,6 +34,7 @@ from trisplat.sfm.inputs import (
     name_list,
 )
 from trisplat.sfm.pairs import exhaustive_pairs, loop_pairs, retrieval_similarity, sequential_pairs
+from trisplat.sfm.verify import repair_registration
 
 MATCHERS = ("auto", "exhaustive", "sequential")
 CAMERA_MODES = ("single", "per-image")
@@ -43,7 +45,8 @@ CAMERA_MODELS = ("auto", "SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL",
 # length on bonsai (829 px) disagreed with another self-calibration (~1188 px): two mappings, and the weaker model.
 # SIMPLE_RADIAL (one radial term) is the fallback only when RADIAL registers too few images.
 AUTO_FIRST, AUTO_FALLBACK = "RADIAL", "SIMPLE_RADIAL"
-POSES_VERSION = 2  # part of the cache fingerprint: a capture posed by an older pipeline is posed again
+# part of the cache fingerprint: a capture posed by an older pipeline is posed again (3: the registration check)
+POSES_VERSION = 3
 REPORT = "poses.json"
 WORK = "distorted"
 FEW_FEATURES = 100  # images with fewer SIFT features than this are named in failure messages as a likely cause
@@ -126,6 +129,7 @@ class PosesReport:
     times: dict[str, float] = field(default_factory=dict)
     video: dict | None = None
     warnings: list[str] = field(default_factory=list)
+    registration: dict | None = None  # the registration check (trisplat.sfm.verify.Repair.as_dict)
 
     @property
     def registered_fraction(self) -> float:
@@ -485,6 +489,18 @@ def run_poses(source: str | Path, out: str | Path, options: PosesOptions | None 
         if elsewhere:
             warnings.append(f"the images formed {len(models)} separate models; kept the largest "
                             f"({len(registered)} images); left out, in smaller models: {name_list(sorted(elsewhere))}")
+        t = time.perf_counter()
+        best, repair = repair_registration(db, image_dir, best, work, seed=opts.seed)
+        times["registration check"] = time.perf_counter() - t
+        if repair.flagged:
+            note = (f"{len(repair.flagged)} image(s) were registered where their own matches disagree (a mirror "
+                    f"position on repeated or symmetric content): {name_list(repair.flagged)}; "
+                    + (f"registered again consistently: {name_list(repair.reregistered)}"
+                       if repair.reregistered else "none registered again")
+                    + (f"; left out of the capture: {name_list(repair.dropped)}" if repair.dropped else ""))
+            say(f"      {note}")
+            warnings.append(note)
+        registered = {best.images[i].name for i in best.reg_image_ids()}
         if len(registered) < needed:
             raise _failure(len(registered), names, registered, feats["features"], per_image, needed, source, work)
         model_dir = work / "sparse" / "0"
@@ -511,7 +527,7 @@ def run_poses(source: str | Path, out: str | Path, options: PosesOptions | None 
         mean_track_length=float(best.compute_mean_track_length()), camera_model=cam.model.name,
         camera_params=[float(p) for p in cam.params], image_size=list(check.size) if check.size else None,
         focal_from_exif=bool(feats["exif"]), matcher=matcher, pairs=len(pairs), verified_pairs=n_verified,
-        models=len(models), times=times, video=video_info, warnings=warnings,
+        models=len(models), times=times, video=video_info, warnings=warnings, registration=repair.as_dict(),
     )
     (out / REPORT).write_text(json.dumps(report.as_dict(), indent=2))
     return report
