@@ -385,5 +385,6 @@ def final_lines(m: dict, wall_s: float, run_dir) -> list[str]:
     lines = [f"{what} in {wall_s / 60:.1f} min: {score}, SSIM {m['ssim']:.3f}{lp}, {m['faces']} faces, "
              f"{m['vertices']} vertices ({shape}{far}{cov}) -> {run_dir}"]
     lines += [f"  problem: {p}" for p in health["problems"]]
+    lines += [f"  warning: {w}" for w in health.get("warnings", [])]
     lines += [f"  recovered: {note}" for note in health.get("recoveries", [])]
     return lines

@@ -12,6 +12,12 @@ from __future__ import annotations
 import torch
 
 PARAMS_PER_IMAGE = 12  # A (3x3, row-major) then b (3)
+# A correction no camera makes: I + A scaling some colour direction by less than MIN_GAIN or more than MAX_GAIN
+# (1.6 stops), or one colour direction more than MAX_GAIN_RATIO times another (a white balance shift far beyond a
+# camera's). The correction is then explaining away a photo the scene cannot show: a wrong pose (bonsai's photos at
+# a mirror position learned a red gain of 0.0 and a blue gain of 0.45), a person walking through, a different scene.
+# Measured on bonsai's other 158 photos: gains 0.83-1.30, ratios up to 1.27.
+MIN_GAIN, MAX_GAIN, MAX_GAIN_RATIO = 1 / 3, 3.0, 1.6
 
 
 class Exposure:
@@ -47,6 +53,19 @@ class Exposure:
 
     def state(self) -> torch.Tensor:
         return self.params.detach().clone()
+
+    def misfits(self) -> list[tuple[int, float, float]]:
+        """Training photos whose correction no camera makes (see MIN_GAIN): (index, smallest and largest singular
+        value of I + A), worst first."""
+        idx = self.train
+        if not len(idx):
+            return []
+        A = torch.eye(3) + self.params.detach()[idx, :9].reshape(-1, 3, 3).float()
+        sv = torch.linalg.svdvals(A)
+        lo, hi = sv[:, -1], sv[:, 0]
+        bad = (lo < MIN_GAIN) | (hi > MAX_GAIN) | (hi > MAX_GAIN_RATIO * lo.clamp_min(1e-6))
+        out = [(int(idx[k]), float(lo[k]), float(hi[k])) for k in torch.nonzero(bad).flatten().tolist()]
+        return sorted(out, key=lambda x: x[2] / max(x[1], 1e-6), reverse=True)
 
     def summary(self) -> dict:
         """The largest correction learned: gain (diagonal of I + A) farthest from 1, largest |offset|."""

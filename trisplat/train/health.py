@@ -102,10 +102,11 @@ class RunHealth:
 
 
 def verdict(health: RunHealth, final_psnr: float | None, coverage: float | None,
-            file_psnr: float | None = None) -> dict:
+            file_psnr: float | None = None, warnings: list[str] | None = None) -> dict:
     """{"ok": bool, "problems": [...]} for a finished run: collapses that were not undone, a final test PSNR (of
     the model, or of mesh.glb when file_psnr is given) below MIN_TRUSTED_PSNR, a final PSNR well below the best seen,
-    a file scoring MAX_FILE_LOSS below the model, or a mesh covering less than MIN_COVERAGE of the test pixels."""
+    a file scoring MAX_FILE_LOSS below the model, or a mesh covering less than MIN_COVERAGE of the test pixels.
+    `warnings` (photos that do not fit the scene, ...) are reported without making the result untrusted."""
     problems = [f"collapse: {c['message']}" for c in health.collapses if not c.get("recovered")]
     if final_psnr is not None and final_psnr == final_psnr and final_psnr < MIN_TRUSTED_PSNR:
         problems.append(f"the final test PSNR is {final_psnr:.2f} dB (below {MIN_TRUSTED_PSNR:g} dB): the mesh does "
@@ -125,7 +126,8 @@ def verdict(health: RunHealth, final_psnr: float | None, coverage: float | None,
     if coverage is not None and coverage < MIN_COVERAGE:
         problems.append(f"the mesh covers {100 * coverage:.1f}% of the test pixels (holes; below "
                         f"{100 * MIN_COVERAGE:g}%)")
-    return {"ok": not problems, "problems": problems, "recoveries": list(health.recoveries),
+    return {"ok": not problems, "problems": problems, "warnings": list(warnings or []),
+            "recoveries": list(health.recoveries),
             "peak_faces": health.peak_faces, "best_test_psnr": health.best_psnr}
 
 

@@ -785,6 +785,19 @@ class Trainer:
             total += float(content.sum())
         return covered / total if total else None
 
+    def _misfit_warnings(self) -> list[str]:
+        """Training photos whose learned colour correction no camera makes (trisplat.train.exposure.Exposure.misfits):
+        the scene cannot show them, most often because their pose is wrong."""
+        if self.exposure is None:
+            return []
+        found = self.exposure.misfits()
+        if not found:
+            return []
+        names = [f"{self.data.cameras[i].name} (gains {lo:.2f}-{hi:.2f})" for i, lo, hi in found]
+        return [f"{len(found)} training photo(s) do not fit the scene: their colour correction scales a colour by "
+                f"a factor no camera does, so the scene cannot show them (a wrong pose, something moving through, "
+                f"another scene): {', '.join(names[:8])}{' ...' if len(names) > 8 else ''}"]
+
     def _run_verdict(self, metrics: dict) -> dict:
         """What the run says about itself (trisplat.train.health.verdict): coverage of the test views, collapses,
         the final PSNR against the best seen; with a far field, the connected surface's own statistics."""
@@ -805,7 +818,8 @@ class Trainer:
             extra["mesh"] = {**metrics.get("mesh", {}), **{k: st[k] for k in metrics.get("mesh", {}) if k in st},
                              "of": "the connected surface (without the far-field soup)"}
             extra["surface_faces"] = surface.num_faces
-        extra["health"] = verdict(self.health, metrics.get("psnr"), coverage, metrics.get("file_psnr"))
+        extra["health"] = verdict(self.health, metrics.get("psnr"), coverage, metrics.get("file_psnr"),
+                                  self._misfit_warnings())
         if metrics.get("report"):
             add_to_report(self.run_dir / metrics["report"], extra["health"])
         return extra

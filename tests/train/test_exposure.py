@@ -1,0 +1,56 @@
+"""Per-photo colour corrections: applied as specified, learned from photos with known exposure and white balance,
+kept in their gauge, and implausible corrections named (a photo the scene cannot show)."""
+import pytest
+import torch
+
+from trisplat.train.exposure import PARAMS_PER_IMAGE, Exposure
+from trisplat.train.health import RunHealth, verdict
+
+
+def test_apply_is_the_identity_at_start_and_the_affine_map_after():
+    e = Exposure(3, lr=0.01)
+    rgb = torch.rand(4, 5, 3)
+    assert torch.equal(e.apply(rgb, 1), rgb)
+    p = torch.zeros(3, PARAMS_PER_IMAGE)
+    p[2, :9] = torch.tensor([[0.1, 0.0, 0.2], [0.0, -0.3, 0.0], [0.05, 0.0, 0.0]]).flatten()
+    p[2, 9:] = torch.tensor([0.01, -0.02, 0.03])
+    e = Exposure(3, lr=0.01, values=p)
+    M = torch.eye(3) + p[2, :9].reshape(3, 3)
+    expect = torch.einsum("ij,hwj->hwi", M, rgb) + p[2, 9:]
+    torch.testing.assert_close(e.apply(rgb, 2), expect)
+    with pytest.raises(ValueError, match=r"\[3,12\]"):
+        Exposure(3, lr=0.01, values=torch.zeros(2, PARAMS_PER_IMAGE))
+
+
+def test_corrections_are_learned_from_photos_with_known_gains_and_stay_in_their_gauge():
+    torch.manual_seed(0)
+    scene = torch.rand(16, 16, 3)
+    gains = torch.tensor([[0.8, 0.9, 1.1], [1.2, 1.1, 0.9], [1.0, 1.0, 1.0]])  # mean 1: the scene is the common colour
+    photos = [scene * g for g in gains]
+    e = Exposure(3, lr=0.01)
+    losses = []
+    for _ in range(600):
+        loss = sum(((e.apply(scene, i) - photos[i]) ** 2).mean() for i in range(3))
+        loss.backward()
+        e.step()
+        losses.append(float(loss.detach()))
+    assert losses[-1] < 1e-3 * losses[0]
+    learned = 1 + e.state()[:, [0, 4, 8]]
+    torch.testing.assert_close(learned, gains, atol=0.02, rtol=0)
+    torch.testing.assert_close(e.state().mean(0), torch.zeros(PARAMS_PER_IMAGE), atol=1e-6, rtol=0)  # the gauge
+    assert e.misfits() == []
+
+
+def test_a_correction_no_camera_makes_is_named_and_reported_as_a_warning():
+    p = torch.zeros(5, PARAMS_PER_IMAGE)
+    diag = torch.tensor([[0.13, 0.10, 0.03], [-1.01, -0.08, -0.57], [-0.04, -0.04, -0.55], [0.30, 0.12, 0.10],
+                         [-0.10, 0.00, 0.05]])  # bonsai's gains: rows 0, 3, 4 normal; row 1 (red 0), row 2 (blue 0.45) not
+    p[:, [0, 4, 8]] = diag
+    e = Exposure(5, lr=0.01, values=p)
+    found = e.misfits()
+    assert [i for i, _, _ in found] == [1, 2]
+    assert found[0][1] < 0.05 and found[1][1] == pytest.approx(0.45, abs=0.01)
+    # only the training photos are judged (a test photo's correction is never learned)
+    assert Exposure(5, lr=0.01, values=p, train_indices=[0, 2, 3]).misfits()[0][0] == 2
+    v = verdict(RunHealth(), 25.0, 1.0, warnings=["2 training photo(s) do not fit the scene"])
+    assert v["ok"] and v["warnings"] == ["2 training photo(s) do not fit the scene"]
