@@ -54,3 +54,15 @@ def test_a_correction_no_camera_makes_is_named_and_reported_as_a_warning():
     assert Exposure(5, lr=0.01, values=p, train_indices=[0, 2, 3]).misfits()[0][0] == 2
     v = verdict(RunHealth(), 25.0, 1.0, warnings=["2 training photo(s) do not fit the scene"])
     assert v["ok"] and v["warnings"] == ["2 training photo(s) do not fit the scene"]
+
+
+def test_the_report_shows_problems_and_warnings(tmp_path):
+    from trisplat.train.health import add_to_report
+
+    page = tmp_path / "report.html"
+    page.write_text("<html><body><h1>Run</h1><p>scores</p></body></html>")
+    add_to_report(page, verdict(RunHealth(), 25.0, 0.9, warnings=["photo <b>x</b> does not fit"]))
+    text = page.read_text()
+    assert "not trustworthy" in text and "90.0%" in text
+    assert "photo &lt;b&gt;x&lt;/b&gt; does not fit" in text  # escaped
+    assert text.index("</h1>") < text.index("health-warnings") < text.index("<p>scores")

@@ -149,6 +149,9 @@ def add_to_report(page, health: dict) -> None:
         items = "".join(f"<li>{html.escape(p)}</li>" for p in health["problems"])
         body = ("<div id='health' style='border:2px solid #c00;padding:6px 12px;background:#fee'><b>This result is "
                 f"not trustworthy.</b><ul>{items}</ul></div>")
+    if health.get("warnings"):
+        body += ("<div id='health-warnings' style='border:1px solid #c80;padding:6px 12px;background:#ffd'><b>Warnings"
+                 "</b><ul>" + "".join(f"<li>{html.escape(w)}</li>" for w in health["warnings"]) + "</ul></div>")
     at = text.find("</h1>")
     at = at + len("</h1>") if at >= 0 else text.find("<body>") + len("<body>")
     from trisplat.io.atomic import atomic_write_text
