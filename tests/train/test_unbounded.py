@@ -123,7 +123,7 @@ def test_verdict_refuses_a_bad_result_and_forgives_a_recovered_collapse():
 def test_oversized_rule_ignores_faces_off_screen():
     """A face just in front of the camera plane but far off to the side projects to a huge triangle entirely outside
     the image: it is not 'oversized' on screen (it was, and a room lost most of its faces to it)."""
-    from trisplat.train.losses import projected_edge_px
+    from trisplat.strategy.screen import projected_edge_px
 
     K = torch.tensor([[50.0, 0, 50], [0, 50.0, 50], [0, 0, 1]])
     pos = torch.tensor([[5.0, 0.0, 0.02], [5.2, 0.0, 0.02], [5.0, 0.2, 0.02],  # off to the side, nearly in-plane

@@ -22,6 +22,7 @@ from trisplat.scene.sh import num_sh_bases
 from trisplat.strategy import ops
 from trisplat.strategy.densify import densify
 from trisplat.strategy.opacity import raise_floor
+from trisplat.strategy.screen import projected_edge_px
 from trisplat.strategy.prune import final_max_weight_prune, prune
 from trisplat.strategy.refine import accumulate_colour_gradient, refine_surface
 from trisplat.train import losses, schedules
@@ -335,10 +336,11 @@ class Trainer:
         with torch.no_grad():
             st = self.ts.face_stats
             st["max_weight"] = torch.maximum(st["max_weight"], out.max_weight.detach())
-            px = losses.projected_edge_px(self.ts.params["positions"].detach(), self.ts.faces,
-                                          torch.as_tensor(cam.world_to_camera, dtype=torch.float32), K, cfg.near,
-                                          cam.width, cam.height)
-            st["max_screen_px"] = torch.maximum(st["max_screen_px"], px)
+            if not self.connected or self._refining(p):  # read by pruning, densification and the refinement only
+                px = projected_edge_px(self.ts.params["positions"].detach(), self.ts.faces,
+                                       torch.as_tensor(cam.world_to_camera, dtype=torch.float32), K, cfg.near,
+                                       cam.width, cam.height)
+                st["max_screen_px"] = torch.maximum(st["max_screen_px"], px)
         return {"ok": True, "loss": float(loss.detach()), "psnr": psnr_value(rgb.detach().clamp(0, 1), gt)}
 
     def _strategy(self, p_prev: float, p: float) -> None:

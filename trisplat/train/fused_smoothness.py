@@ -1,0 +1,122 @@
+"""Normal smoothness of a connected surface (mean 1 - cos between the normals of faces sharing an edge) as fused
+Numba kernels with the exact gradient, computed in one pass.
+
+The loss is the one `trisplat.train.losses.normal_smoothness_torch` spells out in torch (its readable twin and the
+test oracle):
+
+  c_f = (p1 - p0) x (p2 - p0),  n_f = c_f / max(|c_f|, 1e-12)       (face f = (p0, p1, p2))
+  loss = mean over edge-sharing pairs (a, b) of 1 - n_a . n_b
+
+Gradient: g_n[a] = -n_b / E (and the same for b), then g_c = (g_n - (g_n . n) n) / |c| (g_n / 1e-12 where |c| is
+clamped), g_(p1 - p0) = (p2 - p0) x g_c, g_(p2 - p0) = g_c x (p1 - p0), scattered onto the vertices.
+Why: on a 370k-face surface torch's version (gathers, cross products, norms and their autograd) took 130 ms a step
+on one core, as much as the rasterizer's forward; these kernels take a few milliseconds.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from numba import njit, prange
+
+NORMALIZE_EPS = 1e-12  # as the torch twin's clamp_min
+
+
+@njit(parallel=True, cache=True)
+def _normals(pos, faces, n, clen, ea, eb):
+    """Per face: unit normal n [F,3], |c| clen [F] (unclamped), edge vectors ea = p1 - p0, eb = p2 - p0 [F,3]."""
+    for f in prange(faces.shape[0]):
+        i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
+        ax, ay, az = pos[i1, 0] - pos[i0, 0], pos[i1, 1] - pos[i0, 1], pos[i1, 2] - pos[i0, 2]
+        bx, by, bz = pos[i2, 0] - pos[i0, 0], pos[i2, 1] - pos[i0, 1], pos[i2, 2] - pos[i0, 2]
+        cx, cy, cz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+        ln = math.sqrt(cx * cx + cy * cy + cz * cz)
+        d = max(ln, NORMALIZE_EPS)
+        n[f, 0], n[f, 1], n[f, 2] = cx / d, cy / d, cz / d
+        clen[f] = ln
+        ea[f, 0], ea[f, 1], ea[f, 2] = ax, ay, az
+        eb[f, 0], eb[f, 1], eb[f, 2] = bx, by, bz
+
+
+@njit(cache=True)
+def _pairs(pairs, n, g_n, scale):
+    """Sum of n_a . n_b over the pairs; g_n[f] -= scale * n_other for each pair f belongs to (serial: a face is in
+    up to three pairs, so a parallel scatter would race)."""
+    total = 0.0
+    for e in range(pairs.shape[0]):
+        a, b = pairs[e, 0], pairs[e, 1]
+        total += n[a, 0] * n[b, 0] + n[a, 1] * n[b, 1] + n[a, 2] * n[b, 2]
+        for k in range(3):
+            g_n[a, k] -= scale * n[b, k]
+            g_n[b, k] -= scale * n[a, k]
+    return total
+
+
+@njit(parallel=True, cache=True)
+def _face_grads(n, clen, ea, eb, g_n, g_face):
+    """Per face, the gradient on its three vertices g_face [F,3,3] from the gradient on its unit normal."""
+    for f in prange(n.shape[0]):
+        gx, gy, gz = g_n[f, 0], g_n[f, 1], g_n[f, 2]
+        ln = clen[f]
+        if ln > NORMALIZE_EPS:
+            dot = gx * n[f, 0] + gy * n[f, 1] + gz * n[f, 2]
+            gcx, gcy, gcz = (gx - dot * n[f, 0]) / ln, (gy - dot * n[f, 1]) / ln, (gz - dot * n[f, 2]) / ln
+        else:
+            gcx, gcy, gcz = gx / NORMALIZE_EPS, gy / NORMALIZE_EPS, gz / NORMALIZE_EPS
+        ax, ay, az = ea[f, 0], ea[f, 1], ea[f, 2]
+        bx, by, bz = eb[f, 0], eb[f, 1], eb[f, 2]
+        # c = A x B: g_A = B x g_c, g_B = g_c x A
+        gAx, gAy, gAz = by * gcz - bz * gcy, bz * gcx - bx * gcz, bx * gcy - by * gcx
+        gBx, gBy, gBz = gcy * az - gcz * ay, gcz * ax - gcx * az, gcx * ay - gcy * ax
+        g_face[f, 1, 0], g_face[f, 1, 1], g_face[f, 1, 2] = gAx, gAy, gAz
+        g_face[f, 2, 0], g_face[f, 2, 1], g_face[f, 2, 2] = gBx, gBy, gBz
+        g_face[f, 0, 0], g_face[f, 0, 1], g_face[f, 0, 2] = -gAx - gBx, -gAy - gBy, -gAz - gBz
+
+
+@njit(cache=True)
+def _scatter(faces, g_face, g_pos):
+    for f in range(faces.shape[0]):
+        for k in range(3):
+            v = faces[f, k]
+            for c in range(3):
+                g_pos[v, c] += g_face[f, k, c]
+
+
+def smoothness_and_grad(positions: np.ndarray, faces: np.ndarray, pairs: np.ndarray) -> tuple[float, np.ndarray]:
+    """(loss, d loss / d positions [V,3] float64) for float positions [V,3], int faces [F,3], int pairs [E,2]."""
+    pos = np.ascontiguousarray(positions, dtype=np.float64)
+    fc = np.ascontiguousarray(faces, dtype=np.int64)
+    pr = np.ascontiguousarray(pairs, dtype=np.int64)
+    F, E = len(fc), len(pr)
+    g_pos = np.zeros_like(pos)
+    if E == 0:
+        return 0.0, g_pos
+    n, clen = np.empty((F, 3)), np.empty(F)
+    ea, eb = np.empty((F, 3)), np.empty((F, 3))
+    _normals(pos, fc, n, clen, ea, eb)
+    g_n = np.zeros((F, 3))
+    total = _pairs(pr, n, g_n, 1.0 / E)
+    g_face = np.empty((F, 3, 3))
+    _face_grads(n, clen, ea, eb, g_n, g_face)
+    _scatter(fc, g_face, g_pos)
+    return 1.0 - total / E, g_pos
+
+
+class _NormalSmoothness(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, positions, faces, pairs):
+        loss, grad = smoothness_and_grad(positions.detach().cpu().numpy(), faces.detach().cpu().numpy(),
+                                         pairs.detach().cpu().numpy())
+        ctx.save_for_backward(torch.from_numpy(grad).to(positions.dtype))
+        return positions.new_tensor(loss)
+
+    @staticmethod
+    def backward(ctx, g):
+        (grad,) = ctx.saved_tensors
+        return grad * g, None, None
+
+
+def normal_smoothness_fused(positions: torch.Tensor, faces: torch.Tensor, pairs: torch.Tensor) -> torch.Tensor:
+    """The fused CPU version of trisplat.train.losses.normal_smoothness_torch (same value and gradient)."""
+    return _NormalSmoothness.apply(positions, faces, pairs)
