@@ -150,7 +150,7 @@ def deregister(reconstruction, names: list[str]) -> None:
 
 def register_again(database: Path, image_dir: Path, reconstruction, names: list[str], work: Path, seed: int = 0):
     """Deregister `names` and let COLMAP's incremental mapper register them again into the rest of the model.
-    Returns the continued model (the input one, minus `names`, if none registers)."""
+    Returns the continued model (the input one, minus `names`, if none registers or the mapper fails)."""
     import pycolmap
 
     deregister(reconstruction, names)
@@ -170,6 +170,8 @@ def register_again(database: Path, image_dir: Path, reconstruction, names: list[
         best = max(models.values(), key=lambda r: (r.num_reg_images(), r.num_points3D()), default=None)
         if best is None or best.num_reg_images() < reconstruction.num_reg_images():
             best = reconstruction
+    except Exception:  # noqa: BLE001 - COLMAP failing here leaves the flagged images out, as registering none would
+        best = reconstruction
     finally:
         shutil.rmtree(src, ignore_errors=True)
         shutil.rmtree(dst, ignore_errors=True)
