@@ -89,3 +89,20 @@ def test_a_photo_moved_to_a_wrong_pose_is_flagged_and_registered_again(synthetic
     assert np.linalg.norm(again.projection_center() - truth) < 0.02 * spread
     assert fixed.num_reg_images() == good.num_reg_images()
     assert not work.exists() or not any(work.iterdir())  # the work folders are removed
+
+
+def test_a_photo_still_misplaced_after_the_second_registration_is_left_out(synthetic_capture, monkeypatch,
+                                                                           tmp_path):
+    import trisplat.sfm.verify as verify
+
+    report, capture = synthetic_capture
+    db = capture / "distorted" / "database.db"
+    name = report.registered[len(report.registered) // 2]
+    moved, _ = _moved_model(capture, name)
+    again, _ = _moved_model(capture, name)
+    # COLMAP puts it back where it was (the ghost matches win again)
+    monkeypatch.setattr(verify, "register_again", lambda *a, **k: again)
+    fixed, repair = repair_registration(db, capture / "images", moved, tmp_path)
+    assert repair.flagged == [name] and repair.reregistered == [] and repair.dropped == [name]
+    assert name not in {fixed.images[i].name for i in fixed.reg_image_ids()}
+    assert fixed.num_reg_images() == len(report.registered) - 1
