@@ -46,6 +46,9 @@ def test_final_line_puts_the_files_score_first_and_says_when_not_to_trust_it():
     m["health"] = {"ok": False, "problems": ["the mesh covers 95.0% of the test pixels (holes; below 99%)"]}
     lines = final_lines(m, 60.0, "r")
     assert "NOT trustworthy" in lines[0] and lines[1] == "  problem: " + m["health"]["problems"][0]
+    m["health"] = {"ok": True, "problems": [], "warnings": ["1 training photo(s) do not fit the scene: a.jpg"]}
+    lines = final_lines(m, 60.0, "r")  # a warning does not make the result untrusted, but it is said
+    assert lines[0].startswith("done") and lines[1] == "  warning: 1 training photo(s) do not fit the scene: a.jpg"
 
 
 def test_final_line_says_how_many_pieces_a_surface_came_out_in():
