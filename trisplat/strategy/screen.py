@@ -2,7 +2,8 @@
 rule, the densification's "too small to split" and the surface refinement's floor (trisplat.strategy).
 
 Measured every training step for the view just rendered (a running maximum per face), so it is a Numba kernel on CPU
-tensors: torch's gathers and norms took 90 ms a step on a 330k-face surface (one core), the kernel a few ms.
+tensors: torch's gathers and norms took 90 ms a step on a 330k-face surface (one core); the kernel is about 19x
+faster (measured side by side in one process).
 `projected_edge_px_torch` is its readable twin and test oracle.
 """
 from __future__ import annotations
@@ -60,7 +61,7 @@ def _edge_px(pos, faces, w2c, K, near, check, width, height, out):
 
 
 def projected_edge_px_torch(positions: torch.Tensor, faces: torch.Tensor, world_to_camera: torch.Tensor,
-                      K: torch.Tensor, near: float, width: int | None = None, height: int | None = None) -> torch.Tensor:
+                            K: torch.Tensor, near: float, width: int | None = None, height: int | None = None) -> torch.Tensor:
     """Longest projected edge of each face in pixels [F]; 0 for faces with a vertex behind the near plane and, when
     the image size is given, for faces whose projection misses the image.
 
