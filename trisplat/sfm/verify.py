@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import math
 import shutil
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -49,10 +49,6 @@ class RegistrationCheck:
 
     flagged: list[str]
     bad_share: dict[str, float]
-    pairs: list[PairCheck] = field(default_factory=list)
-
-    def worst(self, n: int = 3) -> list[tuple[str, float]]:
-        return sorted(self.bad_share.items(), key=lambda kv: -kv[1])[:n]
 
 
 def _skew(t: np.ndarray) -> np.ndarray:
@@ -133,7 +129,7 @@ def flag_images(pairs: list[PairCheck], max_bad_share: float = MAX_BAD_SHARE,
             break
         flagged.append(worst)
         active = [p for p in active if worst not in (p.a, p.b)]
-    return RegistrationCheck(flagged=flagged, bad_share=first or {}, pairs=pairs)
+    return RegistrationCheck(flagged=flagged, bad_share=first or {})
 
 
 def check_registration(database: Path, reconstruction, max_bad_share: float = MAX_BAD_SHARE) -> RegistrationCheck:

@@ -29,35 +29,35 @@ def projected_edge_px(positions: torch.Tensor, faces: torch.Tensor, world_to_cam
     return torch.from_numpy(out)
 
 
+@njit(cache=True, inline="always")
+def _project(pos, i, w2c, near, fx, fy):
+    """Vertex i in the camera: (x / z fx, y / z fy) with z clamped to `near`, and whether z > near."""
+    x = w2c[0, 0] * pos[i, 0] + w2c[0, 1] * pos[i, 1] + w2c[0, 2] * pos[i, 2] + w2c[0, 3]
+    y = w2c[1, 0] * pos[i, 0] + w2c[1, 1] * pos[i, 1] + w2c[1, 2] * pos[i, 2] + w2c[1, 3]
+    z = w2c[2, 0] * pos[i, 0] + w2c[2, 1] * pos[i, 1] + w2c[2, 2] * pos[i, 2] + w2c[2, 3]
+    zc = max(z, near)
+    return x / zc * fx, y / zc * fy, z > near
+
+
 @njit(parallel=True, cache=True)
 def _edge_px(pos, faces, w2c, K, near, check, width, height, out):
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     for f in prange(faces.shape[0]):
-        u = np.empty(3)
-        v = np.empty(3)
-        ok = True
-        for k in range(3):
-            i = faces[f, k]
-            x = w2c[0, 0] * pos[i, 0] + w2c[0, 1] * pos[i, 1] + w2c[0, 2] * pos[i, 2] + w2c[0, 3]
-            y = w2c[1, 0] * pos[i, 0] + w2c[1, 1] * pos[i, 1] + w2c[1, 2] * pos[i, 2] + w2c[1, 3]
-            z = w2c[2, 0] * pos[i, 0] + w2c[2, 1] * pos[i, 1] + w2c[2, 2] * pos[i, 2] + w2c[2, 3]
-            if not z > near:
-                ok = False
-            zc = max(z, near)
-            u[k] = x / zc * fx
-            v[k] = y / zc * fy
+        u0, v0, ok0 = _project(pos, faces[f, 0], w2c, near, fx, fy)
+        u1, v1, ok1 = _project(pos, faces[f, 1], w2c, near, fx, fy)
+        u2, v2, ok2 = _project(pos, faces[f, 2], w2c, near, fx, fy)
+        ok = ok0 and ok1 and ok2
         if ok and check:
-            lo_u, hi_u = min(u[0], min(u[1], u[2])) + cx, max(u[0], max(u[1], u[2])) + cx
-            lo_v, hi_v = min(v[0], min(v[1], v[2])) + cy, max(v[0], max(v[1], v[2])) + cy
+            lo_u, hi_u = min(u0, min(u1, u2)) + cx, max(u0, max(u1, u2)) + cx
+            lo_v, hi_v = min(v0, min(v1, v2)) + cy, max(v0, max(v1, v2)) + cy
             ok = hi_u >= 0.0 and lo_u <= width and hi_v >= 0.0 and lo_v <= height
         if not ok:
             out[f] = 0.0
             continue
-        e = 0.0
-        for k in range(3):
-            k1 = (k + 1) % 3
-            e = max(e, math.sqrt((u[k1] - u[k]) ** 2 + (v[k1] - v[k]) ** 2))
-        out[f] = e
+        e01 = math.sqrt((u1 - u0) ** 2 + (v1 - v0) ** 2)
+        e12 = math.sqrt((u2 - u1) ** 2 + (v2 - v1) ** 2)
+        e20 = math.sqrt((u0 - u2) ** 2 + (v0 - v2) ** 2)
+        out[f] = max(e01, max(e12, e20))
 
 
 def projected_edge_px_torch(positions: torch.Tensor, faces: torch.Tensor, world_to_camera: torch.Tensor,
