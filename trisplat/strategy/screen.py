@@ -2,8 +2,7 @@
 rule, the densification's "too small to split" and the surface refinement's floor (trisplat.strategy).
 
 Measured every training step for the view just rendered (a running maximum per face), so it is a Numba kernel on CPU
-tensors: torch's gathers and norms took 90 ms a step on a 330k-face surface (one core); the kernel is about 19x
-faster (measured side by side in one process).
+tensors (`trisplat bench losses`, a 328k-face sphere, 2 threads, idle: torch 26.8 ms, the kernel 4.4 ms).
 `projected_edge_px_torch` is its readable twin and test oracle.
 """
 from __future__ import annotations

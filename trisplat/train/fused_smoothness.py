@@ -9,9 +9,8 @@ test oracle):
 
 Gradient: g_n[a] = -n_b / E (and the same for b), then g_c = (g_n - (g_n . n) n) / |c| (g_n / 1e-12 where |c| is
 clamped), g_(p1 - p0) = (p2 - p0) x g_c, g_(p2 - p0) = g_c x (p1 - p0), scattered onto the vertices.
-Why: on a 330k-face surface torch's version (gathers, cross products, norms and their autograd) took 130 ms a step
-on one core, as much as the rasterizer's forward; these kernels take about a seventh of torch's time (measured
-side by side in one process: 512 -> 68 ms at 2 threads on a loaded machine).
+Why: torch's version (gathers, cross products, norms and their autograd) ran every fine-tuning step over the whole
+surface; `trisplat bench losses` on a 328k-face sphere, 2 threads, idle: torch 65.7 ms, these kernels 17.7 ms.
 """
 from __future__ import annotations
 
