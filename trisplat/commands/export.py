@@ -19,8 +19,8 @@ EXPORT_SUBDIR = "export"
 class ExportConfig:
     """Export a run's mesh in the capture's own frame and units (the inverse of the scene normalisation).
 
-    Meshes carry the view-independent colour (SH band 0) per vertex (and, with --texture-size, a texture fitted to
-    the photos); `model` is the full model PLY with every SH
+    Meshes carry a view-independent colour per vertex, fitted to the photos (or SH band 0), and with --texture-size
+    a texture fitted to the photos; `model` is the full model PLY with every SH
     coefficient and the opacity, which reloads losslessly."""
 
     run: tyro.conf.Positional[Path]
@@ -40,6 +40,9 @@ class ExportConfig:
     texture_size: int = 0
     """side of a base-colour texture fitted to the run's training photos (OBJ map_Kd + PNG, GLB baseColorTexture);
     0: vertex colours only. Score the result with `trisplat eval RUN --file OUT/mesh.glb`"""
+    fit_colours: bool = True
+    """fit the meshes' vertex colours to the run's training photos as a glTF viewer shows them (kept where they
+    beat the model's band-0 colours on held-out photos); --no-fit-colours: band 0 as it is"""
 
 
 def main(argv: list[str]) -> int:
@@ -57,6 +60,7 @@ def main(argv: list[str]) -> int:
         print(f"trisplat export: error: would overwrite {names}; pass --force to replace them", file=sys.stderr)
         return 1
     up = None if cfg.up == "capture" else cfg.up
-    for path in export_run(cfg.run, formats=formats, up=up, out_dir=out, faces=cfg.faces, texture_size=cfg.texture_size):
+    for path in export_run(cfg.run, formats=formats, up=up, out_dir=out, faces=cfg.faces, texture_size=cfg.texture_size,
+                           fit_colours=cfg.fit_colours):
         print(path)
     return 0

@@ -39,6 +39,7 @@ def export_run(
     out_dir: str | Path | None = None,
     faces: int | None = None,
     texture_size: int = 0,
+    fit_colours: bool = True,
 ) -> list[Path]:
     """Write the run's model as `mesh.<fmt>` (base colour = SH DC term) and/or `model.ply` into `out_dir`
     (default: the run folder; existing files are replaced). Meshes land in the capture frame (the inverse of the
@@ -46,8 +47,10 @@ def export_run(
     training cameras (see trisplat.io.axes), becomes +Y / +Z; 'auto' does so (+Y) for GLB only, None for none.
     The model PLY is never rotated (SH would change). faces: decimate the meshes to about this many faces
     (level of detail; the model PLY keeps every face). texture_size > 0: fit a base-colour texture of that side to
-    the run's training photos (trisplat.texture) for OBJ (map_Kd + PNG) and GLB (baseColorTexture).
-    Returns the files written.
+    the run's training photos (trisplat.texture) for OBJ (map_Kd + PNG) and GLB (baseColorTexture). fit_colours:
+    the meshes' vertex colours are fitted to the training photos as a glTF viewer shows them
+    (trisplat.texture.vertex_colours; kept only where they beat band 0 on held-out views); without the photos the
+    meshes keep band 0, with a warning. Returns the files written.
     """
     from trisplat.run import open_run
 
@@ -60,6 +63,13 @@ def export_run(
     meshes = any(f != MODEL_FORMAT for f in formats)
     if meshes and texture_size:
         data = run.load_scene_data()  # texturing needs the photos: no fallback
+    elif meshes and fit_colours:
+        try:
+            data = run.load_scene_data()
+        except (FileNotFoundError, ValueError) as exc:
+            warnings.warn(f"{run_dir}: cannot read the capture's photos ({exc}); the meshes keep the model's band-0 "
+                          "colours instead of colours fitted to the photos", stacklevel=2)
+            fit_colours = False
     if any(f != MODEL_FORMAT and resolve_up(up, f"x.{f}") is not None for f in formats):
         try:
             capture_up = capture_up_of(data or run.load_scene_data())
@@ -73,12 +83,12 @@ def export_run(
             )
     inverse = np.linalg.inv(np.asarray(normalization, dtype=np.float64))
     texture = None
-    if meshes and (faces is not None or texture_size):
+    if meshes and (faces is not None or texture_size or fit_colours):
         from trisplat.texture.asset import build_asset
 
         asset = build_asset(scene, data, texture_size=int(texture_size), faces=faces,
                             supersample=int(run.config.get("eval_supersample", 2)),
-                            near=float(run.config.get("near", 0.01)))
+                            near=float(run.config.get("near", 0.01)), fit_colours=fit_colours)
         positions, fc, colors, texture = asset.positions, asset.faces, asset.colors, asset.texture
         from trisplat.texture.asset import choice_message
 

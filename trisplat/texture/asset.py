@@ -2,7 +2,7 @@
 base-colour texture fitted to the photos."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 
 import numpy as np
 
@@ -12,13 +12,15 @@ from trisplat.io.gltf import TextureMap
 @dataclass
 class MeshAsset:
     """positions [V,3] (the run's normalised frame), faces [F,3], colors [V,3] sRGB (vertex colours, what PLY holds),
-    texture (None: vertex colours only) and what texturing reported (metrics.json's `texture`)."""
+    texture (None: vertex colours only) and what texturing and the vertex-colour fit reported (metrics.json's
+    `texture` and `vertex_colours`)."""
 
     positions: np.ndarray
     faces: np.ndarray
     colors: np.ndarray
     texture: TextureMap | None = None
     texture_report: dict | None = None
+    colour_report: dict | None = None
 
 
 def decimate(positions: np.ndarray, faces: np.ndarray, colors: np.ndarray, target_faces: int):
@@ -52,11 +54,17 @@ def photo_texture_cap(data) -> int:
 
 
 def build_asset(scene, data, texture_size: int = 2048, faces: int | None = None, supersample: int = 2,
-                near: float = 0.01) -> MeshAsset:
-    """The mesh files' content for a TriangleScene trained on `data` (SceneData): SH band 0 as vertex colours,
-    decimated to `faces` when given, textured over the training views when texture_size > 0."""
+                near: float = 0.01, fit_colours: bool = True) -> MeshAsset:
+    """The mesh files' content for a TriangleScene trained on `data` (SceneData): vertex colours, decimated to
+    `faces` when given, textured over the training views when texture_size > 0.
+
+    The vertex colours are fitted to the training photos as a glTF viewer shows them (fit_colours; trisplat.texture.
+    vertex_colours), starting from and pulled towards the model's SH band 0; the texture is fitted with them as its
+    prior. With enough training views (holdout_views) some are held out of both fits, and the file gets whichever
+    scores best on them: the texture, the fitted vertex colours or the model's band-0 colours (choose_colours)."""
     from trisplat.scene.sh import sh_dc_to_rgb
     from trisplat.texture import texture_mesh
+    from trisplat.texture.vertex_colours import fit_vertex_colors
 
     positions = scene.positions.detach().cpu().numpy()
     fc = scene.faces.detach().cpu().numpy().astype(np.int64)
@@ -64,15 +72,23 @@ def build_asset(scene, data, texture_size: int = 2048, faces: int | None = None,
     if faces is not None:
         positions, fc, colors = decimate(positions, fc, colors, int(faces))
     asset = MeshAsset(positions=positions, faces=fc, colors=colors)
-    if texture_size and len(fc):
+    if not len(fc) or not (texture_size or fit_colours):
+        return asset
+    train = [int(i) for i in data.train_indices]
+    held = holdout_views(train)
+    fit = [i for i in train if i not in set(held)]
+    model_colors = colors
+    if fit_colours:
+        views = ((data.cameras[i], np.asarray(data.load_image(i), np.float32)) for i in fit)
+        asset.colors, stats = fit_vertex_colors(positions, fc, views, data.background, model_colors, supersample,
+                                                near)
+        asset.colour_report = {f"fit_{k}": v for k, v in asdict(stats).items()}
+    if texture_size:
         size = min(int(texture_size), photo_texture_cap(data))
-        train = [int(i) for i in data.train_indices]
-        held = holdout_views(train)
-        fit = [i for i in train if i not in set(held)]
-        asset.texture, rep = texture_mesh(positions, fc, colors, data, size, supersample, near, indices=fit)
+        asset.texture, rep = texture_mesh(positions, fc, asset.colors, data, size, supersample, near, indices=fit)
         asset.texture_report = rep.to_dict()
-        if held:
-            choose_colours(asset, data, held, supersample, near)
+    if held and (fit_colours or asset.texture is not None):
+        choose_colours(asset, data, held, supersample, near, model_colors if fit_colours else None)
     return asset
 
 
@@ -116,15 +132,28 @@ def file_psnr(positions: np.ndarray, faces: np.ndarray, colors: np.ndarray, text
     return float(np.mean(scores))
 
 
-def choose_colours(asset: MeshAsset, data, held: list[int], supersample: int, near: float) -> None:
-    """Keep the texture only where it scores at least as well as the vertex colours on the held-out training views;
-    what was compared and chosen goes into the texture report (metrics.json's `texture`)."""
-    textured = file_psnr(asset.positions, asset.faces, asset.colors, asset.texture, data, held, supersample, near)
+def choose_colours(asset: MeshAsset, data, held: list[int], supersample: int, near: float,
+                   model_colors: np.ndarray | None = None) -> None:
+    """Score the file's candidates on the held-out training views as a glTF viewer shows them and keep the best:
+    the vertex colours against the model's band-0 colours (`model_colors`, when the vertex colours were fitted;
+    a tie keeps the model's), then the texture against the vertex colours kept (a tie keeps the texture). What was
+    compared and chosen goes into the reports (metrics.json's `vertex_colours` and `texture`)."""
     plain = file_psnr(asset.positions, asset.faces, asset.colors, None, data, held, supersample, near)
+    if model_colors is not None:
+        model = file_psnr(asset.positions, asset.faces, model_colors, None, data, held, supersample, near)
+        fitted = plain > model
+        asset.colour_report = {**(asset.colour_report or {}), "holdout_views": len(held),
+                               "holdout_psnr_fitted": plain, "holdout_psnr_model": model,
+                               "chosen": "fitted" if fitted else "model"}
+        if not fitted:
+            asset.colors, plain = model_colors, model
+    if asset.texture is None:
+        return
+    textured = file_psnr(asset.positions, asset.faces, asset.colors, asset.texture, data, held, supersample, near)
     keep = textured >= plain
-    asset.texture_report.update({"holdout_views": len(held), "holdout_psnr_texture": textured,
-                                 "holdout_psnr_vertex_colours": plain,
-                                 "chosen": "texture" if keep else "vertex colours"})
+    asset.texture_report = {**(asset.texture_report or {}), "holdout_views": len(held),
+                            "holdout_psnr_texture": textured, "holdout_psnr_vertex_colours": plain,
+                            "chosen": "texture" if keep else "vertex colours"}
     if not keep:
         asset.texture = None
 

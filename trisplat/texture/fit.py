@@ -92,6 +92,30 @@ def texel_coverage(atlas: Atlas):
     return surface_samples(pos, atlas.uv_faces, np.eye(4), K, S, S, 1, near=0.5)
 
 
+def view_rows(ss, photo, bg_lin: np.ndarray, taps, columns: int):
+    """One view's rows of W^1/2 A and W^1/2 b (module docstring): a row per pixel some sample of `ss`
+    (trisplat.texture.raster.SurfaceSamples) sees the mesh in. taps(face_id [n], bary [n,3]) -> (column indices
+    [n,k], weights [n,k]): the unknowns each sample's colour is the weighted sum of (texels, or vertices). Returns
+    (row lengths, column ids int32, values float32, rhs float32 [rows,3], samples) or None when no sample hits."""
+    s = ss.supersample
+    W = ss.face_id.shape[1] // s
+    ys, xs = np.nonzero(ss.face_id >= 0)
+    if len(ys) == 0:
+        return None
+    idx, w = taps(ss.face_id[ys, xs], ss.bary[ys, xs])
+    pix = (ys // s) * W + xs // s
+    covered, row = np.unique(pix, return_inverse=True)
+    frac = np.bincount(row, minlength=len(covered)) / float(s * s)  # surface share of each covered pixel
+    target = srgb_to_linear(np.asarray(photo, np.float64).reshape(-1, 3)[covered])
+    sq = linear_to_srgb_slope(target.mean(1))  # W^1/2
+    b = (target - (1.0 - frac)[:, None] * bg_lin[None, :]) * sq[:, None]
+    vals = (np.asarray(w, np.float32) / float(s * s)) * sq[row][:, None].astype(np.float32)
+    A = sp.csr_matrix((vals.ravel(), (np.repeat(row, idx.shape[1]), np.asarray(idx).ravel())),
+                      shape=(len(covered), columns), dtype=np.float32)
+    A.sum_duplicates()
+    return np.diff(A.indptr), A.indices.astype(np.int32), A.data, b.astype(np.float32), len(ys)
+
+
 def assemble(positions: np.ndarray, faces: np.ndarray, atlas: Atlas, views: Iterable, background,
              prior_colors: np.ndarray, supersample: int = 2, near: float = 0.01) -> TexelProblem:
     """The rows W^1/2 A and right-hand sides W^1/2 b of every view (see the module docstring) over the texels some
@@ -104,32 +128,19 @@ def assemble(positions: np.ndarray, faces: np.ndarray, atlas: Atlas, views: Iter
     n_views = n_samples = 0
     col_used = np.zeros(S * S, bool)
     for cam, photo in views:
-        W, H = cam.width, cam.height
         ss = surface_samples(positions, faces, np.asarray(cam.world_to_camera, np.float64), np.asarray(cam.K),
-                             W, H, supersample, near)
-        s = ss.supersample
-        hit = ss.face_id >= 0
-        ys, xs = np.nonzero(hit)
-        if len(ys) == 0:
+                             cam.width, cam.height, supersample, near)
+
+        def taps(fid, bary):
+            return bilinear_taps(np.einsum("nk,nkc->nc", bary.astype(np.float64), uv_corner[fid]), S, S)
+
+        blk = view_rows(ss, photo, bg_lin, taps, S * S)
+        if blk is None:
             continue
-        fid = ss.face_id[ys, xs]
-        uv = np.einsum("nk,nkc->nc", ss.bary[ys, xs].astype(np.float64), uv_corner[fid])
-        idx, w = bilinear_taps(uv, S, S)
-        pix = (ys // s) * W + xs // s
-        covered, row = np.unique(pix, return_inverse=True)
-        frac = np.bincount(row, minlength=len(covered)) / float(s * s)  # surface share of each covered pixel
-        target = srgb_to_linear(np.asarray(photo, np.float64).reshape(-1, 3)[covered])
-        omega = linear_to_srgb_slope(target.mean(1)) ** 2
-        sq = np.sqrt(omega)
-        b = (target - (1.0 - frac)[:, None] * bg_lin[None, :]) * sq[:, None]
-        vals = (w / float(s * s)) * sq[row][:, None].astype(np.float32)
-        A = sp.csr_matrix((vals.ravel(), (np.repeat(row, 4), idx.ravel())), shape=(len(covered), S * S),
-                          dtype=np.float32)
-        A.sum_duplicates()
-        col_used[A.indices] = True
-        blocks.append((np.diff(A.indptr), A.indices.astype(np.int32), A.data, b.astype(np.float32)))
+        col_used[blk[1]] = True
+        blocks.append(blk[:4])
         n_views += 1
-        n_samples += len(ys)
+        n_samples += blk[4]
     if not blocks:
         raise ValueError("no view sees the mesh: nothing to fit a texture to")
     _return_freed_memory()  # the views' temporaries (lego: 2,695 -> 2,066 MiB at the peak below, 2048 texture)

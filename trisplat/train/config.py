@@ -197,6 +197,10 @@ class TrainConfig:
     """Face budget of the surface: this many times the soup's faces at the switch (fusion switch)."""
     surface_max_faces: int = 400_000
     """Upper bound on the surface's face budget (fusion switch)."""
+    surface_truncation: float = 3.0
+    """Fusion switch: the TSDF's truncation distance, in voxels. The soup's depth differs a little from view to view;
+    where two views disagree by more than this, the farther one votes the nearer one's surface free, which wears
+    away the silhouettes (trisplat.mesh.fusion)."""
     surface_max_depth: float = 0.01
     """Fusion switch: space no camera saw (behind every view's surface) is solid only this far from what the views
     measured, as a fraction of the fused box's longest side; farther it is free (unseen undersides and insides get
@@ -233,6 +237,9 @@ class TrainConfig:
     """Side (texels) of the base-colour texture fitted to the training photos at the end of the run (UV atlas +
     least squares, trisplat.texture) and written into mesh.glb (baseColorTexture) and mesh.obj (map_Kd); 0: no
     texture (vertex colours only)."""
+    fit_colours: bool = True
+    """Fit the mesh files' vertex colours to the training photos as a glTF viewer shows them (trisplat.texture.
+    vertex_colours), kept where they beat the model's band-0 colours on held-out photos; False: band 0 as it is."""
     export_faces: Annotated[int | None, tyro.conf.arg(metavar="INT")] = None
     """Decimate the exported mesh files (mesh.ply/obj/glb) to about this many faces before texturing (the model
     keeps its faces); None: export every face."""

@@ -72,7 +72,8 @@ def write_outputs(trainer, pruned) -> dict:
     from trisplat.texture.asset import build_asset
 
     asset = build_asset(scene, data, texture_size=int(getattr(cfg, "texture_size", 0) or 0),
-                        faces=getattr(cfg, "export_faces", None), supersample=cfg.eval_supersample, near=cfg.near)
+                        faces=getattr(cfg, "export_faces", None), supersample=cfg.eval_supersample, near=cfg.near,
+                        fit_colours=bool(getattr(cfg, "fit_colours", True)))
     write_model_files(run_dir, scene, normalization,
                       capture_up(data), asset)
     from trisplat.texture.asset import choice_message
@@ -103,6 +104,8 @@ def write_outputs(trainer, pruned) -> dict:
         metrics.update(_score_file(run_dir, data, ss, hard))
     if asset.texture_report is not None:
         metrics["texture"] = asset.texture_report
+    if asset.colour_report is not None:
+        metrics["vertex_colours"] = asset.colour_report
     metrics["file_faces"] = int(len(asset.faces))
     opac = scene.opacities()
     metrics.update({

@@ -475,6 +475,7 @@ class Trainer:
         max_depth = cfg.surface_max_depth if masked else max(cfg.surface_max_depth, UNBOUNDED_MAX_DEPTH)
         scfg = SurfaceConfig(resolution=int(min(cfg.surface_resolution, max(2 * side, 32))),
                              face_ratio=cfg.surface_face_ratio, max_depth_fraction=max_depth,
+                             truncation_voxels=cfg.surface_truncation,
                              max_faces=cfg.surface_max_faces, opacity=cfg.surface_opacity,
                              unseen_faces=cfg.surface_unseen_faces, empty_is_free=masked,
                              retry_truncations=() if masked else UNBOUNDED_RETRY_TRUNCATIONS)

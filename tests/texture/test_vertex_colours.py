@@ -1,0 +1,121 @@
+"""Vertex colours fitted to photos: photos of a vertex-coloured sphere (made by the glTF spec renderer from a file
+with known COLOR_0) give those colours back, and the file keeps fitted colours only where they beat the model's."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import trimesh
+
+from tests.texture.test_texture_fit import Cam, _look_at
+from trisplat.eval.image_metrics import psnr
+from trisplat.eval.spec_render import prepare_asset, render_asset
+from trisplat.io import export_mesh
+from trisplat.io.gltf import read_glb
+from trisplat.texture.vertex_colours import fit_vertex_colors, mesh_edges
+
+
+def _cams(n_az=10, elevations=(-0.5, 0.1, 0.6), size=64):
+    f = 1.1 * size
+    return [Cam(_look_at(3.0 * np.array([np.cos(a) * np.cos(e), np.sin(a) * np.cos(e), np.sin(e)])),
+                np.array([[f, 0, size / 2], [0, f, size / 2], [0, 0, 1]]), size, size)
+            for a in np.linspace(0, 2 * np.pi, n_az, endpoint=False) for e in elevations]
+
+
+def _photos(tmp_path, mesh, colors, cams, bg):
+    export_mesh(tmp_path / "truth.glb", mesh.vertices, mesh.faces, colors, up=None)
+    truth = prepare_asset(read_glb(tmp_path / "truth.glb"))
+    return [render_asset(truth, c.world_to_camera, c.K, c.width, c.height, bg, 2) for c in cams]
+
+
+def test_mesh_edges_are_the_unique_undirected_edges():
+    e = mesh_edges(np.array([[0, 1, 2], [2, 1, 3]]))
+    assert e.tolist() == [[0, 1], [0, 2], [1, 2], [1, 3], [2, 3]]
+
+
+def test_fitted_vertex_colours_recover_the_colours_the_photos_were_made_with(tmp_path):
+    """The photos show COLOR_0 as glTF defines it (linear, interpolated in linear light, averaged over 2x2
+    samples); fitted from flat grey, the colours come back to within a few 8-bit steps, and the file made with them
+    reproduces photos it was not fitted to. A fit in sRGB, with wrong barycentrics or wrong vertex ids would not."""
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    rng = np.random.default_rng(0)
+    truth = rng.uniform(0.05, 0.95, (len(mesh.vertices), 3))  # independent colours: no smoothness helps
+    bg = (1.0, 1.0, 1.0)
+    cams = _cams()
+    photos = _photos(tmp_path, mesh, truth, cams, bg)
+    held = set(range(2, len(cams), 7))
+    fit = [i for i in range(len(cams)) if i not in held]
+    grey = np.full_like(truth, 0.5)
+    colors, stats = fit_vertex_colors(mesh.vertices, mesh.faces, ((cams[i], photos[i]) for i in fit), bg, grey,
+                                      prior=1e-4, smoothness=0.0)
+    assert stats.views == len(fit) and stats.seen == len(mesh.vertices) and stats.relative_residual < 1e-3
+    assert np.abs(colors - truth).max() < 0.03, np.abs(colors - truth).max()
+    export_mesh(tmp_path / "fit.glb", mesh.vertices, mesh.faces, colors, up=None)
+    asset = prepare_asset(read_glb(tmp_path / "fit.glb"))
+    scores = [psnr(photos[i], render_asset(asset, cams[i].world_to_camera, cams[i].K, 64, 64, bg, 2)) for i in held]
+    assert min(scores) > 40.0, scores
+
+
+def test_the_prior_keeps_what_no_photo_sees(tmp_path):
+    """Vertices on the far side of every camera keep the prior's colour; the strong default prior pulls the seen
+    ones part of the way towards it (the model's colours), by the documented weight."""
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    truth = np.tile([[0.8, 0.2, 0.1]], (len(mesh.vertices), 1))
+    bg = (1.0, 1.0, 1.0)
+    cams = [c for c in _cams(n_az=6, elevations=(0.9,))]  # from high above: the bottom is never seen
+    photos = _photos(tmp_path, mesh, truth, cams, bg)
+    prior = np.tile([[0.2, 0.6, 0.9]], (len(mesh.vertices), 1))
+    colors, stats = fit_vertex_colors(mesh.vertices, mesh.faces, zip(cams, photos), bg, prior)
+    bottom = mesh.vertices[:, 2] < -0.9
+    assert bottom.any() and stats.seen < len(mesh.vertices)
+    np.testing.assert_allclose(colors[bottom], prior[bottom], atol=0.02)
+    top = mesh.vertices[:, 2] > 0.9
+    # seen squarely by every camera: between the photos and the prior, nearer the photos' colour
+    d_truth, d_prior = np.abs(colors[top] - truth[top]).mean(), np.abs(colors[top] - prior[top]).mean()
+    assert d_truth < d_prior and d_truth > 0.01
+
+
+def test_the_file_keeps_the_models_colours_where_the_fitted_ones_lose(tmp_path):
+    """choose_colours scores fitted and model colours on held-out views and keeps the better one."""
+    import torch
+
+    from trisplat.scene.model import TriangleScene
+    from trisplat.scene.sh import rgb_to_sh_dc
+    from trisplat.texture.asset import MeshAsset, build_asset, choose_colours, holdout_views
+
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    rng = np.random.default_rng(1)
+    truth = rng.uniform(0.05, 0.95, (len(mesh.vertices), 3))
+    bg = (1.0, 1.0, 1.0)
+    cams = _cams(n_az=8, elevations=(-0.4, 0.2, 0.7), size=48)
+    photos = _photos(tmp_path, mesh, truth, cams, bg)
+
+    @dataclass
+    class Data:
+        cameras: list
+        background: tuple
+        train_indices: np.ndarray
+
+        def load_image(self, i):
+            return photos[i]
+
+    data = Data(cams, bg, np.arange(len(cams)))
+    V = len(mesh.vertices)
+    model = np.full((V, 3), 0.5, np.float32)  # a model whose band 0 is flat grey: the fit must win
+    sh = torch.zeros(V, 1, 3)
+    sh[:, 0] = rgb_to_sh_dc(torch.as_tensor(model))
+    scene = TriangleScene(torch.as_tensor(mesh.vertices, dtype=torch.float32), sh, torch.full((V,), 10.0),
+                          torch.as_tensor(mesh.faces, dtype=torch.int32))
+    asset = build_asset(scene, data, texture_size=0, supersample=2)
+    rep = asset.colour_report
+    held = holdout_views(list(range(len(cams))))
+    assert rep["fit_views"] == len(cams) - len(held) and rep["holdout_views"] == len(held)
+    assert rep["chosen"] == "fitted" and rep["holdout_psnr_fitted"] > rep["holdout_psnr_model"] + 3.0, rep
+    assert asset.texture is None and asset.texture_report is None
+    # colours worse than the model's (scrambled between vertices) lose to them: the file gets the model's
+    bad = MeshAsset(asset.positions, asset.faces, asset.colors[rng.permutation(V)], None, None, {})
+    choose_colours(bad, data, held, 2, 0.01, model_colors=truth.astype(np.float32))
+    assert bad.colour_report["chosen"] == "model" and np.array_equal(bad.colors, truth.astype(np.float32))
+    # without a fit, build_asset leaves the model's colours and reports nothing
+    plain = build_asset(scene, data, texture_size=0, fit_colours=False)
+    assert plain.colour_report is None and np.allclose(plain.colors, model, atol=1e-6)
