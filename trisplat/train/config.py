@@ -197,10 +197,14 @@ class TrainConfig:
     """Face budget of the surface: this many times the soup's faces at the switch (fusion switch)."""
     surface_max_faces: int = 400_000
     """Upper bound on the surface's face budget (fusion switch)."""
-    surface_truncation: float = 3.0
-    """Fusion switch: the TSDF's truncation distance, in voxels. The soup's depth differs a little from view to view;
-    where two views disagree by more than this, the farther one votes the nearer one's surface free, which wears
-    away the silhouettes (trisplat.mesh.fusion)."""
+    # Re-switched from one soup each (docs/benchmarks.md, "The switch wore the silhouettes away"): 3 / 6 / 9 voxels,
+    # model PSNR: Spot 35.13 / 36.18 / 36.69, lego 27.54 / 27.55 / 27.08; fox (real photos) 3 / 6: 25.33 / 25.20.
+    surface_truncation: Annotated[float | None, tyro.conf.arg(metavar="FLOAT|None")] = None
+    """Fusion switch: the TSDF's truncation distance, in voxels (None: 6 for a capture whose photos have alpha, an
+    object, and 3 for real photos). The soup's depth differs a little from view to view; where two views disagree by
+    more than this, the farther one votes the nearer one's surface free, which wears the outline away (Spot at 3
+    voxels: 1.6% of the object's pixels lost, more than half the final error); a wider band rounds off fine
+    detail."""
     surface_max_depth: float = 0.01
     """Fusion switch: space no camera saw (behind every view's surface) is solid only this far from what the views
     measured, as a fraction of the fused box's longest side; farther it is free (unseen undersides and insides get
@@ -283,6 +287,9 @@ class TrainConfig:
         if self.connect_at is not None and not 0.0 <= self.connect_at < 1.0:
             raise ValueError(f"connect_at must be a progress in [0, 1) (the last step's progress is below 1: a switch "
                              f"at 1 never happens) or None, got {self.connect_at}")
+        if self.surface_truncation is not None and not self.surface_truncation > 0:
+            raise ValueError(f"surface_truncation must be > 0 voxels (or None: 6 for objects, 3 for real photos), got "
+                             f"{self.surface_truncation}")
         if self.output == "surface" and self.connect_at is None:
             raise ValueError("connect_at is None but output is 'surface': a surface run must switch from the soup to "
                              f"a connected surface; give --connect-at P (progress 0-1, default {SURFACE_SWITCH_AT}) "

@@ -52,6 +52,17 @@ UNBOUNDED_MAX_DEPTH = 0.025
 UNBOUNDED_RETRY_TRUNCATIONS = (0.02, 0.04)
 
 
+OBJECT_TRUNCATION_VOXELS = 6.0  # the fusion switch's truncation for captures with alpha (TrainConfig.surface_truncation)
+REAL_TRUNCATION_VOXELS = 3.0  # and for real photos
+
+
+def surface_truncation(cfg: TrainConfig, has_alpha: bool) -> float:
+    """The fusion switch's truncation in voxels: cfg.surface_truncation, or its capture-dependent default."""
+    if cfg.surface_truncation is not None:
+        return float(cfg.surface_truncation)
+    return OBJECT_TRUNCATION_VOXELS if has_alpha else REAL_TRUNCATION_VOXELS
+
+
 class TrainingDiverged(RuntimeError):
     """NaN/Inf kept coming back after rolling back with lower learning rates."""
 
@@ -475,7 +486,7 @@ class Trainer:
         max_depth = cfg.surface_max_depth if masked else max(cfg.surface_max_depth, UNBOUNDED_MAX_DEPTH)
         scfg = SurfaceConfig(resolution=int(min(cfg.surface_resolution, max(2 * side, 32))),
                              face_ratio=cfg.surface_face_ratio, max_depth_fraction=max_depth,
-                             truncation_voxels=cfg.surface_truncation,
+                             truncation_voxels=surface_truncation(cfg, masked),
                              max_faces=cfg.surface_max_faces, opacity=cfg.surface_opacity,
                              unseen_faces=cfg.surface_unseen_faces, empty_is_free=masked,
                              retry_truncations=() if masked else UNBOUNDED_RETRY_TRUNCATIONS)
