@@ -119,3 +119,35 @@ def test_the_file_keeps_the_models_colours_where_the_fitted_ones_lose(tmp_path):
     # without a fit, build_asset leaves the model's colours and reports nothing
     plain = build_asset(scene, data, texture_size=0, fit_colours=False)
     assert plain.colour_report is None and np.allclose(plain.colors, model, atol=1e-6)
+
+
+def test_a_mesh_no_view_sees_keeps_the_models_colours_and_says_why():
+    """The fit needs photos of the mesh; a mesh behind every camera keeps band 0 (no crash at the end of a run)."""
+    import torch
+
+    from trisplat.scene.model import TriangleScene
+    from trisplat.scene.sh import rgb_to_sh_dc
+    from trisplat.texture.asset import build_asset
+
+    mesh = trimesh.creation.icosphere(subdivisions=1)
+    cams = _cams(n_az=4, elevations=(0.0,), size=16)
+    far = mesh.vertices + np.array([0.0, 0.0, 50.0])  # above every camera's view
+
+    @dataclass
+    class Data:
+        cameras: list
+        background: tuple
+        train_indices: np.ndarray
+
+        def load_image(self, i):
+            return np.ones((16, 16, 3), np.float32)
+
+    V = len(far)
+    model = np.full((V, 3), 0.3, np.float32)
+    sh = torch.zeros(V, 1, 3)
+    sh[:, 0] = rgb_to_sh_dc(torch.as_tensor(model))
+    scene = TriangleScene(torch.as_tensor(far, dtype=torch.float32), sh, torch.full((V,), 10.0),
+                          torch.as_tensor(mesh.faces, dtype=torch.int32))
+    asset = build_asset(scene, Data(cams, (1.0, 1.0, 1.0), np.arange(len(cams))), texture_size=0)
+    assert asset.colour_report["chosen"] == "model" and "no view sees the mesh" in asset.colour_report["reason"]
+    np.testing.assert_allclose(asset.colors, model, atol=1e-6)

@@ -80,9 +80,13 @@ def build_asset(scene, data, texture_size: int = 2048, faces: int | None = None,
     model_colors = colors
     if fit_colours:
         views = ((data.cameras[i], np.asarray(data.load_image(i), np.float32)) for i in fit)
-        asset.colors, stats = fit_vertex_colors(positions, fc, views, data.background, model_colors, supersample,
-                                                near)
-        asset.colour_report = {f"fit_{k}": v for k, v in asdict(stats).items()}
+        try:
+            asset.colors, stats = fit_vertex_colors(positions, fc, views, data.background, model_colors,
+                                                    supersample, near)
+            asset.colour_report = {f"fit_{k}": v for k, v in asdict(stats).items()}
+        except ValueError as exc:  # no fitting view sees the mesh: the model's colours, and why
+            asset.colour_report = {"chosen": "model", "reason": str(exc)}
+            fit_colours = False
     if texture_size:
         size = min(int(texture_size), photo_texture_cap(data))
         asset.texture, rep = texture_mesh(positions, fc, asset.colors, data, size, supersample, near, indices=fit)
