@@ -401,4 +401,3 @@ def test_fusion_kernel_matches_the_per_voxel_reference():
     np.testing.assert_array_equal(out[1], ref[1])
     np.testing.assert_array_equal(out[2], ref[2])
     np.testing.assert_array_equal(out[3], ref[3])
-

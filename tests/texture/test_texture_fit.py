@@ -35,6 +35,33 @@ def _look_at(eye):
     return w2c
 
 
+@dataclass
+class PhotoData:
+    """What build_asset reads of a SceneData: the cameras, the background, the training split and the photos."""
+
+    cameras: list
+    background: tuple
+    train_indices: np.ndarray
+    photos: list
+
+    def load_image(self, i):
+        return self.photos[i]
+
+
+def coloured_scene(vertices, faces, colors):
+    """An opaque TriangleScene whose SH band 0 holds the sRGB vertex `colors`."""
+    import torch
+
+    from trisplat.scene.model import TriangleScene
+    from trisplat.scene.sh import rgb_to_sh_dc
+
+    V = len(vertices)
+    sh = torch.zeros(V, 1, 3)
+    sh[:, 0] = rgb_to_sh_dc(torch.as_tensor(colors))
+    return TriangleScene(torch.as_tensor(vertices, dtype=torch.float32), sh, torch.full((V,), 10.0),
+                         torch.as_tensor(faces, dtype=torch.int32))
+
+
 def _pattern(p):
     """An sRGB colour field on the sphere with detail finer than its vertex spacing."""
     return np.clip(0.5 + 0.4 * np.stack([np.sin(9 * p[:, 0]), np.cos(11 * p[:, 1]), np.sin(7 * p[:, 2] + 1)], 1), 0, 1)
@@ -85,10 +112,6 @@ def test_fitted_texture_reproduces_the_photos(tmp_path):
 def test_the_file_keeps_the_texture_only_where_it_beats_vertex_colours(tmp_path):
     """build_asset holds every 10th training view out of the fit (captures of >= 20 views) and keeps the texture only
     when it scores at least as well as the vertex colours there (bonsai: the texture lost 2.9 dB, fox: it won 0.7)."""
-    import torch
-
-    from trisplat.scene.model import TriangleScene
-    from trisplat.scene.sh import rgb_to_sh_dc
     from trisplat.texture.asset import MeshAsset, build_asset, choose_colours, holdout_views
 
     assert holdout_views(list(range(19))) == []
@@ -103,22 +126,9 @@ def test_the_file_keeps_the_texture_only_where_it_beats_vertex_colours(tmp_path)
     bg = (1.0, 1.0, 1.0)
     photos = [render_asset(truth_asset, c.world_to_camera, c.K, c.width, c.height, bg, 2) for c in cams]
 
-    @dataclass
-    class Data:
-        cameras: list
-        background: tuple
-        train_indices: np.ndarray
-
-        def load_image(self, i):
-            return photos[i]
-
-    data = Data(cams, bg, np.arange(len(cams)))
+    data = PhotoData(cams, bg, np.arange(len(cams)), photos)
     colors = _pattern(mesh.vertices).astype(np.float32)
-    V = len(mesh.vertices)
-    sh = torch.zeros(V, 1, 3)
-    sh[:, 0] = rgb_to_sh_dc(torch.as_tensor(colors))
-    scene = TriangleScene(torch.as_tensor(mesh.vertices, dtype=torch.float32), sh, torch.full((V,), 10.0),
-                          torch.as_tensor(mesh.faces, dtype=torch.int32))
+    scene = coloured_scene(mesh.vertices, mesh.faces, colors)
     asset = build_asset(scene, data, texture_size=128, supersample=2)
     rep = asset.texture_report
     held = holdout_views(list(range(len(cams))))

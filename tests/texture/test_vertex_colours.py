@@ -2,17 +2,16 @@
 with known COLOR_0) give those colours back, and the file keeps fitted colours only where they beat the model's."""
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 import trimesh
 
-from tests.texture.test_texture_fit import Cam, _look_at
+from tests.texture.test_texture_fit import Cam, PhotoData, _look_at, coloured_scene
 from trisplat.eval.image_metrics import psnr
 from trisplat.eval.spec_render import prepare_asset, render_asset
 from trisplat.io import export_mesh
 from trisplat.io.gltf import read_glb
-from trisplat.texture.vertex_colours import fit_vertex_colors, mesh_edges
+from trisplat.mesh.orient import edge_table
+from trisplat.texture.vertex_colours import fit_vertex_colors
 
 
 def _cams(n_az=10, elevations=(-0.5, 0.1, 0.6), size=64):
@@ -29,7 +28,7 @@ def _photos(tmp_path, mesh, colors, cams, bg):
 
 
 def test_mesh_edges_are_the_unique_undirected_edges():
-    e = mesh_edges(np.array([[0, 1, 2], [2, 1, 3]]))
+    e = edge_table(np.array([[0, 1, 2], [2, 1, 3]])).edges
     assert e.tolist() == [[0, 1], [0, 2], [1, 2], [1, 3], [2, 3]]
 
 
@@ -77,10 +76,6 @@ def test_the_prior_keeps_what_no_photo_sees(tmp_path):
 
 def test_the_file_keeps_the_models_colours_where_the_fitted_ones_lose(tmp_path):
     """choose_colours scores fitted and model colours on held-out views and keeps the better one."""
-    import torch
-
-    from trisplat.scene.model import TriangleScene
-    from trisplat.scene.sh import rgb_to_sh_dc
     from trisplat.texture.asset import MeshAsset, build_asset, choose_colours, holdout_views
 
     mesh = trimesh.creation.icosphere(subdivisions=2)
@@ -90,22 +85,10 @@ def test_the_file_keeps_the_models_colours_where_the_fitted_ones_lose(tmp_path):
     cams = _cams(n_az=8, elevations=(-0.4, 0.2, 0.7), size=48)
     photos = _photos(tmp_path, mesh, truth, cams, bg)
 
-    @dataclass
-    class Data:
-        cameras: list
-        background: tuple
-        train_indices: np.ndarray
-
-        def load_image(self, i):
-            return photos[i]
-
-    data = Data(cams, bg, np.arange(len(cams)))
+    data = PhotoData(cams, bg, np.arange(len(cams)), photos)
     V = len(mesh.vertices)
     model = np.full((V, 3), 0.5, np.float32)  # a model whose band 0 is flat grey: the fit must win
-    sh = torch.zeros(V, 1, 3)
-    sh[:, 0] = rgb_to_sh_dc(torch.as_tensor(model))
-    scene = TriangleScene(torch.as_tensor(mesh.vertices, dtype=torch.float32), sh, torch.full((V,), 10.0),
-                          torch.as_tensor(mesh.faces, dtype=torch.int32))
+    scene = coloured_scene(mesh.vertices, mesh.faces, model)
     asset = build_asset(scene, data, texture_size=0, supersample=2)
     rep = asset.colour_report
     held = holdout_views(list(range(len(cams))))
@@ -123,31 +106,15 @@ def test_the_file_keeps_the_models_colours_where_the_fitted_ones_lose(tmp_path):
 
 def test_a_mesh_no_view_sees_keeps_the_models_colours_and_says_why():
     """The fit needs photos of the mesh; a mesh behind every camera keeps band 0 (no crash at the end of a run)."""
-    import torch
-
-    from trisplat.scene.model import TriangleScene
-    from trisplat.scene.sh import rgb_to_sh_dc
     from trisplat.texture.asset import build_asset
 
     mesh = trimesh.creation.icosphere(subdivisions=1)
     cams = _cams(n_az=4, elevations=(0.0,), size=16)
     far = mesh.vertices + np.array([0.0, 0.0, 50.0])  # above every camera's view
 
-    @dataclass
-    class Data:
-        cameras: list
-        background: tuple
-        train_indices: np.ndarray
-
-        def load_image(self, i):
-            return np.ones((16, 16, 3), np.float32)
-
-    V = len(far)
-    model = np.full((V, 3), 0.3, np.float32)
-    sh = torch.zeros(V, 1, 3)
-    sh[:, 0] = rgb_to_sh_dc(torch.as_tensor(model))
-    scene = TriangleScene(torch.as_tensor(far, dtype=torch.float32), sh, torch.full((V,), 10.0),
-                          torch.as_tensor(mesh.faces, dtype=torch.int32))
-    asset = build_asset(scene, Data(cams, (1.0, 1.0, 1.0), np.arange(len(cams))), texture_size=0)
+    model = np.full((len(far), 3), 0.3, np.float32)
+    scene = coloured_scene(far, mesh.faces, model)
+    photos = [np.ones((16, 16, 3), np.float32)] * len(cams)
+    asset = build_asset(scene, PhotoData(cams, (1.0, 1.0, 1.0), np.arange(len(cams)), photos), texture_size=0)
     assert asset.colour_report["chosen"] == "model" and "no view sees the mesh" in asset.colour_report["reason"]
     np.testing.assert_allclose(asset.colors, model, atol=1e-6)

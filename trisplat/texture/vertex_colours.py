@@ -22,6 +22,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from trisplat.io.colour import linear_to_srgb, srgb_to_linear
+from trisplat.mesh.orient import edge_table
 from trisplat.texture.fit import SMOOTHNESS, solve, view_rows
 from trisplat.texture.raster import surface_samples
 
@@ -58,13 +59,6 @@ class VertexFitStats:
     seconds: float
 
 
-def mesh_edges(faces: np.ndarray) -> np.ndarray:
-    """Unique undirected edges [E,2] (smaller index first) of a triangle mesh."""
-    f = np.asarray(faces, np.int64)
-    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-    return np.unique(e, axis=0)
-
-
 def assemble_vertices(positions: np.ndarray, faces: np.ndarray, views: Iterable, background,
                       prior_colors: np.ndarray, supersample: int = 2, near: float = 0.01) -> VertexProblem:
     """The rows W^1/2 A and right-hand sides W^1/2 b of every view over the mesh's vertices (module docstring)."""
@@ -92,7 +86,7 @@ def assemble_vertices(positions: np.ndarray, faces: np.ndarray, views: Iterable,
     indptr = np.r_[0, np.cumsum(np.concatenate(lengths))]
     A = sp.csr_matrix((np.concatenate(vals), np.concatenate(cols), indptr), shape=(len(indptr) - 1, n))
     prior = srgb_to_linear(np.clip(np.asarray(prior_colors, np.float64), 0.0, 1.0))
-    return VertexProblem(rows=A, b=np.concatenate(rhs), edges=mesh_edges(faces), prior=prior, views=n_views,
+    return VertexProblem(rows=A, b=np.concatenate(rhs), edges=edge_table(faces).edges, prior=prior, views=n_views,
                          samples=n_samples)
 
 
@@ -107,7 +101,7 @@ def fit_vertex_colors(positions: np.ndarray, faces: np.ndarray, views: Iterable,
     t0 = time.perf_counter()
     problem = assemble_vertices(positions, faces, views, background, prior_colors, supersample, near)
     x, its, rel = solve(problem, smoothness, prior, iterations, tolerance)
-    seen = np.diff(problem.rows.tocsc().indptr) > 0
+    seen = np.bincount(problem.rows.indices, minlength=len(positions)) > 0
     colors = linear_to_srgb(np.clip(x, 0.0, 1.0)).astype(np.float32)
     stats = VertexFitStats(views=problem.views, samples=problem.samples, pixels=problem.rows.shape[0],
                            vertices=len(positions), seen=int(seen.sum()), iterations=its, relative_residual=rel,
