@@ -147,3 +147,33 @@ def test_pose_graph_spreads_a_loop_error_and_keeps_the_first_pose():
     assert np.linalg.norm(poses[4][:3, 3]) > 0.05
     assert np.allclose(out[0], np.eye(4))
     assert np.linalg.norm(out[4][:3, 3]) < 0.002 and rep["cost_after"] < rep["cost_before"]
+
+
+def test_pose_graph_jacobian_matches_finite_differences():
+    """The analytic Jacobian of the pose graph's residuals against central differences, away from x = 0 (large
+    rotations included), with odometry and loop edges and edges to the fixed first node both ways round."""
+    from trisplat.slam.loop import _Graph, _jacobian, _residuals
+
+    rng = np.random.default_rng(3)
+    n = 6
+    poses = []
+    for k in range(n):
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_rotvec(rng.normal(0, 1.0, 3)).as_matrix()
+        T[:3, 3] = rng.normal(0, 1.0, 3)
+        poses.append(T)
+    edges = []
+    for i, j, loop in [(0, 1, False), (1, 2, False), (2, 3, False), (3, 4, False), (4, 5, False), (0, 4, True),
+                       (2, 5, True), (5, 0, True)]:
+        Z = np.eye(4)
+        Z[:3, :3] = Rotation.from_rotvec(rng.normal(0, 0.8, 3)).as_matrix()
+        Z[:3, 3] = rng.normal(0, 0.5, 3)
+        edges.append(Edge(i, j, Z, loop))
+    g = _Graph.of(np.array(poses), edges, {False: (0.02, 0.03), True: (0.05, 0.1)})
+    x = rng.normal(0, 0.4, 6 * (n - 1))
+    J = _jacobian(x, g).toarray()
+    h = 1e-6
+    num = np.stack([(_residuals(x + h * e, g) - _residuals(x - h * e, g)) / (2 * h) for e in np.eye(len(x))], 1)
+    assert J.shape == num.shape
+    np.testing.assert_allclose(J, num, rtol=1e-5, atol=1e-5 * np.abs(num).max())
+    assert not np.allclose(J, 0)

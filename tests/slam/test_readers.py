@@ -6,7 +6,15 @@ import pytest
 from conftest import shared_data
 from PIL import Image
 
-from trisplat.data.rgbd_stream import detect_stream_format, downscale_depth, load_frame, open_stream, read_sevenscenes, read_tum
+from trisplat.data.rgbd_stream import (
+    FramePrefetch,
+    detect_stream_format,
+    downscale_depth,
+    load_frame,
+    open_stream,
+    read_sevenscenes,
+    read_tum,
+)
 
 
 def _write_pair(color_path, depth_path, w=8, h=6, depth_raw=1000, depth_shape=None):
@@ -106,6 +114,28 @@ def test_sevenscenes_errors_name_files(tmp_path):
         open_stream(root)
     with pytest.raises(FileNotFoundError, match="capture folder does not exist"):
         open_stream(tmp_path / "nothing")
+
+
+def test_prefetched_frames_are_load_frames(tmp_path):
+    root = _sevenscenes(tmp_path / "p", n=5)
+    rng = np.random.default_rng(0)
+    for i in range(5):  # each frame its own pixels, so a frame handed out of turn would show
+        Image.fromarray(rng.integers(0, 256, (6, 8, 3), dtype=np.uint8)).save(root / f"frame-{i:06d}.color.png")
+        Image.fromarray(rng.integers(1, 5000, (6, 8), dtype=np.uint16)).save(root / f"frame-{i:06d}.depth.png")
+    s = open_stream(root)
+    ids = [0, 2, 3, 4]
+    with FramePrefetch(s, ids, downscale=2) as frames:
+        for n in (0, 1, 3, 2):  # in order, then one skipped and one asked for after it
+            rgb, depth = frames.get(n)
+            want_rgb, want_depth = load_frame(s, ids[n], 2)
+            np.testing.assert_array_equal(rgb, want_rgb)
+            np.testing.assert_array_equal(depth, want_depth)
+    (root / "frame-000003.color.png").write_bytes(b"not a png")  # corrupt: its own get() names the file
+    with FramePrefetch(s, ids) as frames:
+        frames.get(0)
+        frames.get(1)
+        with pytest.raises(ValueError, match=r"frame-000003\.color\.png"):
+            frames.get(2)
 
 
 def test_downscale_depth_keeps_edges_invalid():

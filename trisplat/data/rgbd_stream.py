@@ -403,7 +403,51 @@ def load_frame(stream: RGBDStream, i: int, downscale: int = 1) -> tuple[np.ndarr
     return rgb, depth
 
 
+class FramePrefetch:
+    """Frames of a stream in order, each one decoded in a background thread while the caller works on the one
+    before (image decoding and downscaling release the GIL, so it runs beside the tracker's kernels).
+
+    get(n) returns load_frame(stream, ids[n], downscale) and starts loading ids[n + 1]; asking for a frame out of
+    order loads it in the caller's thread. Errors (a missing or corrupt file) are raised by the get() of that
+    frame, as load_frame raises them. A context manager: the thread is joined on exit."""
+
+    def __init__(self, stream: RGBDStream, ids: list[int], downscale: int = 1):
+        from concurrent.futures import ThreadPoolExecutor
+
+        self.stream, self.ids, self.downscale = stream, list(ids), int(downscale)
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="trisplat-frames")
+        self._next: tuple[int, object] | None = None
+
+    def _submit(self, n: int) -> None:
+        self._next = (n, self._pool.submit(load_frame, self.stream, self.ids[n], self.downscale))
+
+    def get(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+        ahead, self._next = self._next, None
+        if ahead is not None and ahead[0] == n:
+            out = ahead[1].result()
+        else:
+            if ahead is not None:
+                ahead[1].cancel()
+            out = load_frame(self.stream, self.ids[n], self.downscale)
+        if n + 1 < len(self.ids):
+            self._submit(n + 1)
+        return out
+
+    def close(self) -> None:
+        if self._next is not None:
+            self._next[1].cancel()
+            self._next = None
+        self._pool.shutdown(wait=True)
+
+    def __enter__(self) -> FramePrefetch:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
 __all__ = [
+    "FramePrefetch",
     "RGBDStream",
     "StreamFrame",
     "open_stream",

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.sparse import lil_matrix
+from scipy.sparse import csr_matrix
 from scipy.spatial.transform import Rotation
 
 from trisplat.sfm.align import umeyama
@@ -302,6 +302,69 @@ def _residuals(x, g: _Graph):
     return np.concatenate([et / g.w[:, :1], er / g.w[:, 1:]], 1).ravel()
 
 
+def _skew(v: np.ndarray) -> np.ndarray:
+    """[...,3] -> [...,3,3] cross-product matrices: _skew(a) @ b = a x b."""
+    z = np.zeros(v.shape[:-1])
+    return np.stack([np.stack([z, -v[..., 2], v[..., 1]], -1), np.stack([v[..., 2], z, -v[..., 0]], -1),
+                     np.stack([-v[..., 1], v[..., 0], z], -1)], -2)
+
+
+def _right_jacobian(phi: np.ndarray, inverse: bool = False) -> np.ndarray:
+    """SO(3)'s right Jacobian Jr(phi) [...,3,3] (Exp(phi + d) = Exp(phi) Exp(Jr(phi) d) to first order), or its
+    inverse; series forms near phi = 0."""
+    th2 = np.einsum("...i,...i->...", phi, phi)
+    th = np.sqrt(th2)
+    small = th < 1e-4
+    ths = np.where(small, 1.0, th)
+    W = _skew(phi)
+    W2 = W @ W
+    eye = np.broadcast_to(np.eye(3), W.shape)
+    if not inverse:
+        a = np.where(small, 0.5 - th2 / 24.0, (1.0 - np.cos(ths)) / ths**2)
+        b = np.where(small, 1.0 / 6.0 - th2 / 120.0, (ths - np.sin(ths)) / ths**3)
+        return eye - a[..., None, None] * W + b[..., None, None] * W2
+    c = np.where(small, 1.0 / 12.0 + th2 / 720.0, 1.0 / ths**2 - (1.0 + np.cos(ths)) / (2.0 * ths * np.sin(ths)))
+    return eye + 0.5 * W + c[..., None, None] * W2
+
+
+def _jacobian(x, g: _Graph) -> csr_matrix:
+    """The analytic Jacobian [6E, 6(n-1)] of _residuals (rows per edge: translation, then rotation; columns per
+    node after the first: translation, then rotation vector). With R = R0 Exp(phi) and E = Zr^T R_i^T R_j:
+    d et/d t_j = Zr^T R_i^T = -d et/d t_i;  d et/d phi_i = Zr^T [R_i^T (t_j - t_i)]x Jr(phi_i);
+    d er/d phi_j = Jr^-1(er) Jr(phi_j);  d er/d phi_i = -Jr^-1(er) R_j^T R_i Jr(phi_i)."""
+    n = len(g.t0)
+    dx = np.concatenate([np.zeros((1, 6)), x.reshape(n - 1, 6)])
+    R = g.R0 * Rotation.from_rotvec(dx[:, 3:])
+    t = g.t0 + dx[:, :3]
+    Rm = R.as_matrix()
+    Jr = _right_jacobian(dx[:, 3:])
+    Ri, Rj = Rm[g.ii], Rm[g.jj]
+    Zt_inv = g.Zr_inv.as_matrix()
+    RiT = np.transpose(Ri, (0, 2, 1))
+    rel_t = np.einsum("eab,eb->ea", RiT, t[g.jj] - t[g.ii])
+    er = (g.Zr_inv * R[g.ii].inv() * R[g.jj]).as_rotvec()
+    Jinv = _right_jacobian(er, inverse=True)
+    A = Zt_inv @ RiT  # d et / d t_j
+    blocks = {  # (row block, node side) -> [E,3,3]
+        (0, "i", 0): -A, (0, "j", 0): A, (0, "i", 1): Zt_inv @ _skew(rel_t) @ Jr[g.ii],
+        (1, "j", 1): Jinv @ Jr[g.jj], (1, "i", 1): -Jinv @ np.transpose(Rj, (0, 2, 1)) @ Ri @ Jr[g.ii],
+    }
+    rows, cols, vals = [], [], []
+    E = len(g.ii)
+    r_idx = np.arange(3)
+    for (rb, side, cb), B in blocks.items():
+        node = g.ii if side == "i" else g.jj
+        keep = node > 0
+        scale = 1.0 / g.w[:, rb]
+        e = np.nonzero(keep)[0]
+        rr = (6 * e[:, None] + 3 * rb + r_idx[None, :])[:, :, None].repeat(3, 2)
+        cc = (6 * (node[e] - 1)[:, None] + 3 * cb + r_idx[None, :])[:, None, :].repeat(3, 1)
+        rows.append(rr.ravel())
+        cols.append(cc.ravel())
+        vals.append((B[e] * scale[e, None, None]).ravel())
+    return csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(6 * E, 6 * (n - 1)))
+
+
 def optimise_pose_graph(c2ws: list[np.ndarray], edges: list[Edge], cfg: LoopConfig) -> tuple[list[np.ndarray], dict]:
     """Optimised keyframe camera-to-world poses (the first one fixed) of the graph; also a report (cost before and
     after, iterations)."""
@@ -311,15 +374,10 @@ def optimise_pose_graph(c2ws: list[np.ndarray], edges: list[Edge], cfg: LoopConf
         return [T.copy() for T in T0], {"cost_before": 0.0, "cost_after": 0.0, "evaluations": 0}
     sig = {False: (cfg.sigma_odometry_m, np.radians(cfg.sigma_odometry_deg)),
            True: (cfg.sigma_loop_m, np.radians(cfg.sigma_loop_deg))}
-    S = lil_matrix((6 * len(edges), 6 * (n - 1)), dtype=int)
-    for k, e in enumerate(edges):
-        for node in (e.i, e.j):
-            if node > 0:
-                S[6 * k : 6 * k + 6, 6 * (node - 1) : 6 * node] = 1
     x0 = np.zeros(6 * (n - 1))
     graph = _Graph.of(T0, edges, sig)
     r0 = _residuals(x0, graph)
-    sol = least_squares(_residuals, x0, args=(graph,), jac_sparsity=S, method="trf", x_scale="jac",
+    sol = least_squares(_residuals, x0, jac=_jacobian, args=(graph,), method="trf", x_scale="jac",
                         xtol=1e-10, ftol=1e-10, max_nfev=100)
     dx = np.concatenate([np.zeros((1, 6)), sol.x.reshape(n - 1, 6)])
     R = Rotation.from_matrix(T0[:, :3, :3]) * Rotation.from_rotvec(dx[:, 3:])

@@ -13,7 +13,7 @@ import torch
 
 from trisplat.io.atomic import atomic_write_text
 from trisplat.run import move_aside, prepare_run_dir
-from trisplat.data.rgbd_stream import RGBDStream, _box_down, downscale_depth, load_frame
+from trisplat.data.rgbd_stream import FramePrefetch, RGBDStream, _box_down, downscale_depth, load_frame
 from trisplat.slam.loop import Edge, LoopCloser, LoopConfig, optimise_pose_graph
 from trisplat.slam.map import PruneConfig, SlamMap, SpawnConfig, prune, spawn
 from trisplat.slam.mapping import Keyframe, MapConfig, refine
@@ -423,74 +423,75 @@ def run_slam(stream: RGBDStream, out: Path, cfg: SlamConfig, resume: bool = Fals
     hurried_cfg = dataclasses.replace(cfg, track=dataclasses.replace(
         cfg.track, max_iters=tuple(max(1, int(i) // 2) for i in cfg.track.max_iters), rerender_m=float("inf"),
         rerender_deg=float("inf")))
-    for n in range(start, len(ids)):
-        if cfg.realtime and n > start:
-            # frame n arrives (n - start) / input_fps after the session's first; behind = how late we are for it
-            behind = (time.time() - t_session) - (n - start) / cfg.input_fps
-            if behind > 1.0 / cfg.input_fps:  # frame n + 1 has arrived too: drop n
-                state.c2w.append(np.linalg.inv(motion_guess(state.c2w, set(state.lost))))
-                state.track_loss.append(float("nan"))
-                state.track_iters.append(0)
-                state.track_coverage.append(0.0)
-                state.dropped.append(n)
-                state.elapsed_s = time.time() - t0
-                continue
-        else:
-            behind = 0.0
-        rgb, depth = load_frame(stream, ids[n], D)
-        lost = False
-        if n == 0:
-            c2w = np.eye(4)
-            res_loss, res_it, coverage = 0.0, 0, 0.0
-        else:
-            hurry = cfg.realtime and behind > 0
-            state.hurried += int(hurry)
-            r, lost = track_with_relocalisation(state, _pyramid(rgb, depth, K, cfg.track.levels),
-                                                hurried_cfg if hurry else cfg, n,
-                                                f"frame {n + 1}/{len(ids)} (capture frame {ids[n]})", log,
-                                                closer=closer, keyframes=keyframes)
-            c2w = np.linalg.inv(r.w2c)
-            res_loss, res_it, coverage = r.loss, r.iterations, r.coverage
-        state.c2w.append(c2w)
-        state.track_coverage.append(0.0 if lost else coverage)
-        state.track_loss.append(res_loss)
-        state.track_iters.append(res_it)
-        if lost:
-            state.lost.append(n)
-        is_kf = n == 0
-        # a frame with a flat (e.g. black) picture is tracked on its depth alone and never becomes a keyframe: its
-        # colours would paint the map
-        flat = float(rgb.std()) < 1e-3
-        if flat and n:
-            log(f"frame {n + 1}/{len(ids)} (capture frame {ids[n]}): flat picture (colour std {float(rgb.std()):.1e}): "
-                "tracked on its depth only, not a keyframe", flush=True)
-        if not is_kf and not lost and not flat:
-            last = state.c2w[state.keyframe_ids[-1]]
-            rel = np.linalg.inv(last) @ c2w
-            is_kf = (n - state.keyframe_ids[-1] >= cfg.keyframe_every
-                     or np.linalg.norm(rel[:3, 3]) > cfg.keyframe_translation
-                     or np.degrees(log_so3_angle(rel[:3, :3])) > cfg.keyframe_rotation_deg
-                     or coverage < cfg.keyframe_coverage)
-        if is_kf:
-            state.keyframe_ids.append(n)
-            keyframes.append(Keyframe(n, torch.from_numpy(rgb), torch.from_numpy(depth), c2w))
-            close_loops(state, keyframes, closer, rgb, depth, f"frame {n + 1}/{len(ids)} (capture frame {ids[n]})", log)
-            c2w = state.c2w[n]
-            spawn(state.smap, rgb, depth, c2w, K, len(keyframes) - 1, cfg.spawn, cfg.sigma, rng)
-            iters = cfg.mapping.first_iters if n == 0 else cfg.mapping.iters
-            refine(state.smap, keyframes, K, cfg.sigma, iters, cfg.mapping, rng)
-            prune(state.smap, cfg.prune)
-        state.elapsed_s = time.time() - t0
-        done = n + 1
-        if done % 10 == 0 or done == len(ids) or n == start:
-            rate = (done - start) / max(time.time() - t_session, 1e-9)
-            log(f"frame {done}/{len(ids)}  {rate:.2f} fps  triangles {state.smap.num_faces}  "
-                f"track loss {res_loss:.4f} ({res_it} it)  keyframes {len(keyframes)}  "
-                + (f"lost {len(state.lost)}  " if state.lost else "")
-                + (f"dropped {len(state.dropped)}  " if cfg.realtime else "")
-                + f"elapsed {_fmt_s(state.elapsed_s)}  eta {_fmt_s((len(ids) - done) / max(rate, 1e-9))}", flush=True)
-        if cfg.checkpoint_every and done % cfg.checkpoint_every == 0 and done < len(ids):
-            checkpoint(done)
+    with FramePrefetch(stream, ids, D) as frames:  # the next frame decodes while this one is tracked
+        for n in range(start, len(ids)):
+            if cfg.realtime and n > start:
+                # frame n arrives (n - start) / input_fps after the session's first; behind = how late we are for it
+                behind = (time.time() - t_session) - (n - start) / cfg.input_fps
+                if behind > 1.0 / cfg.input_fps:  # frame n + 1 has arrived too: drop n
+                    state.c2w.append(np.linalg.inv(motion_guess(state.c2w, set(state.lost))))
+                    state.track_loss.append(float("nan"))
+                    state.track_iters.append(0)
+                    state.track_coverage.append(0.0)
+                    state.dropped.append(n)
+                    state.elapsed_s = time.time() - t0
+                    continue
+            else:
+                behind = 0.0
+            rgb, depth = frames.get(n)
+            lost = False
+            if n == 0:
+                c2w = np.eye(4)
+                res_loss, res_it, coverage = 0.0, 0, 0.0
+            else:
+                hurry = cfg.realtime and behind > 0
+                state.hurried += int(hurry)
+                r, lost = track_with_relocalisation(state, _pyramid(rgb, depth, K, cfg.track.levels),
+                                                    hurried_cfg if hurry else cfg, n,
+                                                    f"frame {n + 1}/{len(ids)} (capture frame {ids[n]})", log,
+                                                    closer=closer, keyframes=keyframes)
+                c2w = np.linalg.inv(r.w2c)
+                res_loss, res_it, coverage = r.loss, r.iterations, r.coverage
+            state.c2w.append(c2w)
+            state.track_coverage.append(0.0 if lost else coverage)
+            state.track_loss.append(res_loss)
+            state.track_iters.append(res_it)
+            if lost:
+                state.lost.append(n)
+            is_kf = n == 0
+            # a frame with a flat (e.g. black) picture is tracked on its depth alone and never becomes a keyframe: its
+            # colours would paint the map
+            flat = float(rgb.std()) < 1e-3
+            if flat and n:
+                log(f"frame {n + 1}/{len(ids)} (capture frame {ids[n]}): flat picture (colour std {float(rgb.std()):.1e}): "
+                    "tracked on its depth only, not a keyframe", flush=True)
+            if not is_kf and not lost and not flat:
+                last = state.c2w[state.keyframe_ids[-1]]
+                rel = np.linalg.inv(last) @ c2w
+                is_kf = (n - state.keyframe_ids[-1] >= cfg.keyframe_every
+                         or np.linalg.norm(rel[:3, 3]) > cfg.keyframe_translation
+                         or np.degrees(log_so3_angle(rel[:3, :3])) > cfg.keyframe_rotation_deg
+                         or coverage < cfg.keyframe_coverage)
+            if is_kf:
+                state.keyframe_ids.append(n)
+                keyframes.append(Keyframe(n, torch.from_numpy(rgb), torch.from_numpy(depth), c2w))
+                close_loops(state, keyframes, closer, rgb, depth, f"frame {n + 1}/{len(ids)} (capture frame {ids[n]})", log)
+                c2w = state.c2w[n]
+                spawn(state.smap, rgb, depth, c2w, K, len(keyframes) - 1, cfg.spawn, cfg.sigma, rng)
+                iters = cfg.mapping.first_iters if n == 0 else cfg.mapping.iters
+                refine(state.smap, keyframes, K, cfg.sigma, iters, cfg.mapping, rng)
+                prune(state.smap, cfg.prune)
+            state.elapsed_s = time.time() - t0
+            done = n + 1
+            if done % 10 == 0 or done == len(ids) or n == start:
+                rate = (done - start) / max(time.time() - t_session, 1e-9)
+                log(f"frame {done}/{len(ids)}  {rate:.2f} fps  triangles {state.smap.num_faces}  "
+                    f"track loss {res_loss:.4f} ({res_it} it)  keyframes {len(keyframes)}  "
+                    + (f"lost {len(state.lost)}  " if state.lost else "")
+                    + (f"dropped {len(state.dropped)}  " if cfg.realtime else "")
+                    + f"elapsed {_fmt_s(state.elapsed_s)}  eta {_fmt_s((len(ids) - done) / max(rate, 1e-9))}", flush=True)
+            if cfg.checkpoint_every and done % cfg.checkpoint_every == 0 and done < len(ids):
+                checkpoint(done)
     slam_s = state.elapsed_s
     if cfg.realtime:
         log(f"realtime at {cfg.input_fps:g} frames/s: dropped {len(state.dropped)} of {len(ids)} frames (their poses "
