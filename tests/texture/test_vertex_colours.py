@@ -75,8 +75,9 @@ def test_the_prior_keeps_what_no_photo_sees(tmp_path):
 
 
 def test_the_file_keeps_the_models_colours_where_the_fitted_ones_lose(tmp_path):
-    """choose_colours scores fitted and model colours on held-out views and keeps the better one."""
-    from trisplat.texture.asset import MeshAsset, build_asset, choose_colours, holdout_views
+    """choose_colours scores fitted and model colours on held-out views: the fit is kept unless the model's colours
+    (which trained on those views) beat it by more than FIT_MAX_HOLDOUT_LOSS_DB."""
+    from trisplat.texture.asset import FIT_MAX_HOLDOUT_LOSS_DB, MeshAsset, build_asset, choose_colours, holdout_views
 
     mesh = trimesh.creation.icosphere(subdivisions=2)
     rng = np.random.default_rng(1)
@@ -99,6 +100,12 @@ def test_the_file_keeps_the_models_colours_where_the_fitted_ones_lose(tmp_path):
     bad = MeshAsset(asset.positions, asset.faces, asset.colors[rng.permutation(V)], None, None, {})
     choose_colours(bad, data, held, 2, 0.01, model_colors=truth.astype(np.float32))
     assert bad.colour_report["chosen"] == "model" and np.array_equal(bad.colors, truth.astype(np.float32))
+    # a close call keeps the fit: a flat grey 0.45 against the model's flat 0.5 loses a fraction of a dB
+    close = MeshAsset(asset.positions, asset.faces, np.full((V, 3), 0.45, np.float32), None, None, {})
+    choose_colours(close, data, held, 2, 0.01, model_colors=model)
+    rep = close.colour_report
+    assert rep["holdout_psnr_model"] - FIT_MAX_HOLDOUT_LOSS_DB < rep["holdout_psnr_fitted"] < rep["holdout_psnr_model"]
+    assert rep["chosen"] == "fitted" and np.allclose(close.colors, 0.45)
     # without a fit, build_asset leaves the model's colours and reports nothing
     plain = build_asset(scene, data, texture_size=0, fit_colours=False)
     assert plain.colour_report is None and np.allclose(plain.colors, model, atol=1e-6)

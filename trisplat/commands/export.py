@@ -41,8 +41,8 @@ class ExportConfig:
     """side of a base-colour texture fitted to the run's training photos (OBJ map_Kd + PNG, GLB baseColorTexture);
     0: vertex colours only. Score the result with `trisplat eval RUN --file OUT/mesh.glb`"""
     fit_colours: bool = True
-    """fit the meshes' vertex colours to the run's training photos as a glTF viewer shows them (kept where they
-    beat the model's band-0 colours on held-out photos); --no-fit-colours: band 0 as it is"""
+    """fit the meshes' vertex colours to the run's training photos as a glTF viewer shows them (kept unless the
+    model's band-0 colours beat them by more than 1 dB on held-out photos); --no-fit-colours: band 0 as it is"""
 
 
 def main(argv: list[str]) -> int:

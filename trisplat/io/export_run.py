@@ -49,8 +49,8 @@ def export_run(
     (level of detail; the model PLY keeps every face). texture_size > 0: fit a base-colour texture of that side to
     the run's training photos (trisplat.texture) for OBJ (map_Kd + PNG) and GLB (baseColorTexture). fit_colours:
     the meshes' vertex colours are fitted to the training photos as a glTF viewer shows them
-    (trisplat.texture.vertex_colours; kept only where they beat band 0 on held-out views); without the photos the
-    meshes keep band 0, with a warning. Returns the files written.
+    (trisplat.texture.vertex_colours; kept unless band 0 beats them by over 1 dB on held-out views); without the
+    photos the meshes keep band 0, with a warning. Returns the files written.
     """
     from trisplat.run import open_run
 

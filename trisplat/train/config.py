@@ -243,7 +243,8 @@ class TrainConfig:
     texture (vertex colours only)."""
     fit_colours: bool = True
     """Fit the mesh files' vertex colours to the training photos as a glTF viewer shows them (trisplat.texture.
-    vertex_colours), kept where they beat the model's band-0 colours on held-out photos; False: band 0 as it is."""
+    vertex_colours), kept unless the model's band-0 colours beat them by more than 1 dB on held-out photos;
+    False: band 0 as it is."""
     export_faces: Annotated[int | None, tyro.conf.arg(metavar="INT")] = None
     """Decimate the exported mesh files (mesh.ply/obj/glb) to about this many faces before texturing (the model
     keeps its faces); None: export every face."""
