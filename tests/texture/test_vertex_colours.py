@@ -125,3 +125,27 @@ def test_a_mesh_no_view_sees_keeps_the_models_colours_and_says_why():
     asset = build_asset(scene, PhotoData(cams, (1.0, 1.0, 1.0), np.arange(len(cams)), photos), texture_size=0)
     assert asset.colour_report["chosen"] == "model" and "no view sees the mesh" in asset.colour_report["reason"]
     np.testing.assert_allclose(asset.colors, model, atol=1e-6)
+
+
+def test_one_pass_over_the_views_feeds_both_fits(tmp_path):
+    """build_asset rasterises each view once for the vertex colours and the texture: its colours and texture equal
+    those of the two fits made apart (fit_vertex_colors, then texture_mesh with the fitted colours as prior)."""
+    from trisplat.texture import texture_mesh
+    from trisplat.texture.asset import build_asset
+
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    rng = np.random.default_rng(2)
+    truth = rng.uniform(0.05, 0.95, (len(mesh.vertices), 3))
+    bg = (1.0, 1.0, 1.0)
+    cams = _cams(n_az=6, elevations=(-0.3, 0.5), size=40)  # 12 views: none held out, no choice made
+    photos = _photos(tmp_path, mesh, truth, cams, bg)
+    data = PhotoData(cams, bg, np.arange(len(cams)), photos)
+    model = np.full((len(mesh.vertices), 3), 0.5, np.float32)
+    asset = build_asset(coloured_scene(mesh.vertices, mesh.faces, model), data, texture_size=64, supersample=2)
+    assert asset.colour_report["fit_rows"].startswith("from the texture fit's pass")
+    colors, _ = fit_vertex_colors(mesh.vertices, mesh.faces, zip(cams, photos), bg, model, 2, 0.01)
+    np.testing.assert_allclose(asset.colors, colors, atol=1e-6)
+    assert np.abs(colors - model).max() > 0.2  # the fit moved them: the comparison is not of two priors
+    tex, _ = texture_mesh(np.asarray(mesh.vertices, np.float32), mesh.faces, colors, data, 64, 2, 0.01)
+    np.testing.assert_array_equal(asset.texture.image, tex.image)
+    np.testing.assert_array_equal(asset.texture.uv_faces, tex.uv_faces)

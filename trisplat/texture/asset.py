@@ -2,6 +2,7 @@
 base-colour texture fitted to the photos."""
 from __future__ import annotations
 
+import time
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -64,7 +65,7 @@ def build_asset(scene, data, texture_size: int = 2048, faces: int | None = None,
     scores best on them: the texture, the fitted vertex colours or the model's band-0 colours (choose_colours)."""
     from trisplat.scene.sh import sh_dc_to_rgb
     from trisplat.texture import texture_mesh
-    from trisplat.texture.vertex_colours import fit_vertex_colors
+    from trisplat.texture.vertex_colours import VertexRows, fit_vertex_colors, solve_vertex_colors
 
     positions = scene.positions.detach().cpu().numpy()
     fc = scene.faces.detach().cpu().numpy().astype(np.int64)
@@ -78,7 +79,25 @@ def build_asset(scene, data, texture_size: int = 2048, faces: int | None = None,
     held = holdout_views(train)
     fit = [i for i in train if i not in set(held)]
     model_colors = colors
-    if fit_colours:
+    size = min(int(texture_size), photo_texture_cap(data)) if texture_size else 0
+    if fit_colours and size:  # one rasterisation of each view feeds both fits
+        vrows = VertexRows(len(positions), fc, data.background)
+
+        def fitted_colours() -> np.ndarray:  # after the shared pass, before the texture's solve (its prior)
+            t = time.perf_counter()
+            try:
+                asset.colors, stats = solve_vertex_colors(vrows.finish(model_colors), t)
+                asset.colour_report = {**{f"fit_{k}": v for k, v in asdict(stats).items()},
+                                       "fit_rows": "from the texture fit's pass over the views"}
+            except ValueError as exc:  # no fitting view sees the mesh (the texture's fit then says so too)
+                asset.colour_report = {"chosen": "model", "reason": str(exc)}
+            return asset.colors
+
+        asset.texture, rep = texture_mesh(positions, fc, fitted_colours, data, size, supersample, near, indices=fit,
+                                          also=(vrows,))
+        asset.texture_report = rep.to_dict()
+        fit_colours = asset.colour_report.get("chosen") != "model"
+    elif fit_colours:
         views = ((data.cameras[i], np.asarray(data.load_image(i), np.float32)) for i in fit)
         try:
             asset.colors, stats = fit_vertex_colors(positions, fc, views, data.background, model_colors,
@@ -87,8 +106,7 @@ def build_asset(scene, data, texture_size: int = 2048, faces: int | None = None,
         except ValueError as exc:  # no fitting view sees the mesh: the model's colours, and why
             asset.colour_report = {"chosen": "model", "reason": str(exc)}
             fit_colours = False
-    if texture_size:
-        size = min(int(texture_size), photo_texture_cap(data))
+    if size and asset.texture is None:
         asset.texture, rep = texture_mesh(positions, fc, asset.colors, data, size, supersample, near, indices=fit)
         asset.texture_report = rep.to_dict()
     if held and (fit_colours or asset.texture is not None):

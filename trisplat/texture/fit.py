@@ -116,33 +116,57 @@ def view_rows(ss, photo, bg_lin: np.ndarray, taps, columns: int):
     return np.diff(A.indptr), A.indices.astype(np.int32), A.data, b.astype(np.float32), len(ys)
 
 
-def assemble(positions: np.ndarray, faces: np.ndarray, atlas: Atlas, views: Iterable, background,
-             prior_colors: np.ndarray, supersample: int = 2, near: float = 0.01) -> TexelProblem:
-    """The rows W^1/2 A and right-hand sides W^1/2 b of every view (see the module docstring) over the texels some
-    sample reads or a chart covers, with what the regularisers need (prior colours, neighbour pairs)."""
-    S = atlas.size
-    faces = np.asarray(faces, np.int64)
-    uv_corner = atlas.uv[atlas.uv_faces]  # [F,3,2]
-    bg_lin = srgb_to_linear(np.asarray(background, np.float64))
-    blocks = []  # per view: (row lengths, flat texel ids int32, values float32, rhs float32)
-    n_views = n_samples = 0
-    col_used = np.zeros(S * S, bool)
-    for cam, photo in views:
-        ss = surface_samples(positions, faces, np.asarray(cam.world_to_camera, np.float64), np.asarray(cam.K),
-                             cam.width, cam.height, supersample, near)
+class TexelRows:
+    """The texel problem's rows, a view at a time (add), then the problem over the texels some sample reads or a
+    chart covers (finish). One rasterisation of a view (trisplat.texture.raster.SurfaceSamples) can feed this and the
+    vertex colours' rows (trisplat.texture.vertex_colours.VertexRows) alike."""
+
+    def __init__(self, faces: np.ndarray, atlas: Atlas, background):
+        self.atlas = atlas
+        self.faces = np.asarray(faces, np.int64)
+        self.uv_corner = atlas.uv[atlas.uv_faces]  # [F,3,2]
+        self.bg_lin = srgb_to_linear(np.asarray(background, np.float64))
+        self.blocks = []  # per view: (row lengths, flat texel ids int32, values float32, rhs float32)
+        self.views = self.samples = 0
+        self.col_used = np.zeros(atlas.size * atlas.size, bool)
+
+    def add(self, ss, photo) -> None:
+        S, uv_corner = self.atlas.size, self.uv_corner
 
         def taps(fid, bary):
             return bilinear_taps(np.einsum("nk,nkc->nc", bary.astype(np.float64), uv_corner[fid]), S, S)
 
-        blk = view_rows(ss, photo, bg_lin, taps, S * S)
+        blk = view_rows(ss, photo, self.bg_lin, taps, S * S)
         if blk is None:
-            continue
-        col_used[blk[1]] = True
-        blocks.append(blk[:4])
-        n_views += 1
-        n_samples += blk[4]
-    if not blocks:
-        raise ValueError("no view sees the mesh: nothing to fit a texture to")
+            return
+        self.col_used[blk[1]] = True
+        self.blocks.append(blk[:4])
+        self.views += 1
+        self.samples += blk[4]
+
+    def finish(self, prior_colors: np.ndarray) -> TexelProblem:
+        """The problem (prior_colors [V,3] sRGB: what texels no photo sees are pulled towards); the rows added so
+        far are handed over (this accumulator is empty afterwards)."""
+        if not self.blocks:
+            raise ValueError("no view sees the mesh: nothing to fit a texture to")
+        blocks, self.blocks = self.blocks, []
+        return _texel_problem(self.atlas, self.faces, blocks, self.col_used, prior_colors, self.views, self.samples)
+
+
+def assemble(positions: np.ndarray, faces: np.ndarray, atlas: Atlas, views: Iterable, background,
+             prior_colors: np.ndarray, supersample: int = 2, near: float = 0.01) -> TexelProblem:
+    """The rows W^1/2 A and right-hand sides W^1/2 b of every view (see the module docstring) over the texels some
+    sample reads or a chart covers, with what the regularisers need (prior colours, neighbour pairs)."""
+    rows = TexelRows(faces, atlas, background)
+    for cam, photo in views:
+        rows.add(surface_samples(positions, rows.faces, np.asarray(cam.world_to_camera, np.float64),
+                                 np.asarray(cam.K), cam.width, cam.height, supersample, near), photo)
+    return rows.finish(prior_colors)
+
+
+def _texel_problem(atlas: Atlas, faces: np.ndarray, blocks: list, col_used: np.ndarray, prior_colors: np.ndarray,
+                   n_views: int, n_samples: int) -> TexelProblem:
+    S = atlas.size
     _return_freed_memory()  # the views' temporaries (lego: 2,695 -> 2,066 MiB at the peak below, 2048 texture)
 
     # unknowns: texels some sample reads, and texels inside a chart (for the prior)
@@ -246,7 +270,12 @@ def fit_texture(positions: np.ndarray, faces: np.ndarray, atlas: Atlas, views: I
     prior_colors [V,3]: sRGB vertex colours, what texels no photo sees get."""
     t0 = time.perf_counter()
     problem = assemble(positions, faces, atlas, views, background, prior_colors, supersample, near)
-    t_raster = time.perf_counter() - t0
+    return solve_texture(problem, time.perf_counter() - t0, smoothness, prior, iterations, tolerance)
+
+
+def solve_texture(problem: TexelProblem, t_raster: float, smoothness: float = SMOOTHNESS, prior: float = PRIOR,
+                  iterations: int = CG_ITERATIONS, tolerance: float = CG_TOLERANCE) -> tuple[np.ndarray, FitStats]:
+    """fit_texture's solve of an assembled problem; t_raster: the seconds its rows took (for the report)."""
     t1 = time.perf_counter()
     x, its, rel = solve(problem, smoothness, prior, iterations, tolerance)
     t_solve = time.perf_counter() - t1

@@ -59,35 +59,47 @@ class VertexFitStats:
     seconds: float
 
 
+class VertexRows:
+    """The vertex problem's rows, a view at a time (add: one rasterisation of the view, which can feed the texture's
+    rows too, trisplat.texture.fit.TexelRows), then the problem (finish)."""
+
+    def __init__(self, n_vertices: int, faces: np.ndarray, background):
+        self.n = int(n_vertices)
+        self.faces = np.asarray(faces, np.int64)
+        self.bg_lin = srgb_to_linear(np.asarray(background, np.float64))
+        self.parts = ([], [], [], [])  # row lengths, vertex ids, values, rhs
+        self.views = self.samples = 0
+
+    def add(self, ss, photo) -> None:
+        faces = self.faces
+        blk = view_rows(ss, photo, self.bg_lin, lambda fid, bary: (faces[fid], bary), self.n)
+        if blk is None:
+            return
+        for lst, part in zip(self.parts, blk):
+            lst.append(part)
+        self.views += 1
+        self.samples += blk[4]
+
+    def finish(self, prior_colors: np.ndarray) -> VertexProblem:
+        """The problem; the rows added so far are handed over (this accumulator is empty afterwards)."""
+        (lengths, cols, vals, rhs), self.parts = self.parts, ([], [], [], [])
+        if not lengths:
+            raise ValueError("no view sees the mesh: nothing to fit vertex colours to")
+        indptr = np.r_[0, np.cumsum(np.concatenate(lengths))]
+        A = sp.csr_matrix((np.concatenate(vals), np.concatenate(cols), indptr), shape=(len(indptr) - 1, self.n))
+        prior = srgb_to_linear(np.clip(np.asarray(prior_colors, np.float64), 0.0, 1.0))
+        return VertexProblem(rows=A, b=np.concatenate(rhs), edges=edge_table(self.faces).edges, prior=prior,
+                             views=self.views, samples=self.samples)
+
+
 def assemble_vertices(positions: np.ndarray, faces: np.ndarray, views: Iterable, background,
                       prior_colors: np.ndarray, supersample: int = 2, near: float = 0.01) -> VertexProblem:
     """The rows W^1/2 A and right-hand sides W^1/2 b of every view over the mesh's vertices (module docstring)."""
-    faces = np.asarray(faces, np.int64)
-    n = len(positions)
-    bg_lin = srgb_to_linear(np.asarray(background, np.float64))
-
-    def taps(fid, bary):
-        return faces[fid], bary
-
-    lengths, cols, vals, rhs = [], [], [], []
-    n_views = n_samples = 0
+    rows = VertexRows(len(positions), faces, background)
     for cam, photo in views:
-        ss = surface_samples(positions, faces, np.asarray(cam.world_to_camera, np.float64), np.asarray(cam.K),
-                             cam.width, cam.height, supersample, near)
-        blk = view_rows(ss, photo, bg_lin, taps, n)
-        if blk is None:
-            continue
-        for lst, part in zip((lengths, cols, vals, rhs), blk):
-            lst.append(part)
-        n_views += 1
-        n_samples += blk[4]
-    if not lengths:
-        raise ValueError("no view sees the mesh: nothing to fit vertex colours to")
-    indptr = np.r_[0, np.cumsum(np.concatenate(lengths))]
-    A = sp.csr_matrix((np.concatenate(vals), np.concatenate(cols), indptr), shape=(len(indptr) - 1, n))
-    prior = srgb_to_linear(np.clip(np.asarray(prior_colors, np.float64), 0.0, 1.0))
-    return VertexProblem(rows=A, b=np.concatenate(rhs), edges=edge_table(faces).edges, prior=prior, views=n_views,
-                         samples=n_samples)
+        rows.add(surface_samples(positions, rows.faces, np.asarray(cam.world_to_camera, np.float64),
+                                 np.asarray(cam.K), cam.width, cam.height, supersample, near), photo)
+    return rows.finish(prior_colors)
 
 
 def fit_vertex_colors(positions: np.ndarray, faces: np.ndarray, views: Iterable, background,
@@ -100,10 +112,18 @@ def fit_vertex_colors(positions: np.ndarray, faces: np.ndarray, views: Iterable,
     sRGB: the model's colours, which vertices no photo sees keep."""
     t0 = time.perf_counter()
     problem = assemble_vertices(positions, faces, views, background, prior_colors, supersample, near)
+    return solve_vertex_colors(problem, t0, smoothness, prior, iterations, tolerance)
+
+
+def solve_vertex_colors(problem: VertexProblem, t0: float, smoothness: float = SMOOTHNESS, prior: float = PRIOR,
+                        iterations: int = CG_ITERATIONS, tolerance: float = CG_TOLERANCE
+                        ) -> tuple[np.ndarray, VertexFitStats]:
+    """fit_vertex_colors's solve of an assembled problem; t0: the perf_counter time the fit started at."""
     x, its, rel = solve(problem, smoothness, prior, iterations, tolerance)
-    seen = np.bincount(problem.rows.indices, minlength=len(positions)) > 0
+    n = problem.rows.shape[1]
+    seen = np.bincount(problem.rows.indices, minlength=n) > 0
     colors = linear_to_srgb(np.clip(x, 0.0, 1.0)).astype(np.float32)
     stats = VertexFitStats(views=problem.views, samples=problem.samples, pixels=problem.rows.shape[0],
-                           vertices=len(positions), seen=int(seen.sum()), iterations=its, relative_residual=rel,
+                           vertices=n, seen=int(seen.sum()), iterations=its, relative_residual=rel,
                            seconds=time.perf_counter() - t0)
     return colors, stats
