@@ -49,6 +49,10 @@ class TextureArgs:
     """also score the first N test views (not for choosing weights)"""
     tolerance: float | None = None
     """conjugate-gradient relative residual (default: trisplat.texture.fit.CG_TOLERANCE)"""
+    asset: bool = False
+    """time what a run does instead: trisplat.texture.asset.build_asset, i.e. the vertex colours fitted and the
+    texture fitted from one pass over the training views, then the held-out choice between them (no stages, no
+    weights)"""
     out: Path = Path("bench_results")
     """folder for texture.json and texture.md"""
 
@@ -90,6 +94,8 @@ def main(argv: list[str]) -> int:
     data = run.load_scene_data()
     near = float(run.config.get("near", 0.01))
     supersample = int(run.config.get("eval_supersample", 2))
+    if args.asset:
+        return _bench_asset(args, argv, scene, data, supersample, near)
     positions = scene.positions.detach().cpu().numpy()
     faces = scene.faces.detach().cpu().numpy().astype(np.int64)
     colors = sh_dc_to_rgb(scene.sh[:, 0].detach().cpu()).clamp(0, 1).numpy()
@@ -153,6 +159,42 @@ def main(argv: list[str]) -> int:
         + f"; {supersample}x{supersample} samples per pixel; CG tolerance {tol:g}. 'peak above': the process's peak "
           f"resident memory during atlas, rows and the first solve, above its resident memory before (model and "
           f"capture loaded); process peak {peak_rss_mb():.0f} MiB.")
+    path = table.write(args.out, "trisplat bench texture " + " ".join(argv))
+    print(table.markdown())
+    print(f"wrote {path}")
+    return 0
+
+
+def _bench_asset(args: TextureArgs, argv: list[str], scene, data, supersample: int, near: float) -> int:
+    """--asset: build_asset's seconds (wall, CPU) and peak memory above the loaded run, with what it chose."""
+    import numba
+
+    from trisplat.texture.asset import build_asset
+
+    table = BenchTable("texture_asset", [
+        "faces", "texture", "threads", "total s", "total CPU s", "vertex fit s", "atlas s", "rows s (shared)",
+        "texture solve s", "RSS before MiB", "peak above MiB", "vertex colours", "file colours"])
+    rss_before = _RssSampler()._proc.memory_info().rss / 2**20
+    sampler = _RssSampler().start()
+    t0, c0 = time.perf_counter(), time.process_time()
+    asset = build_asset(scene, data, args.texture_size, args.faces, supersample, near)
+    total, cpu = time.perf_counter() - t0, time.process_time() - c0
+    peak = sampler.stop()
+    tr, cr = asset.texture_report or {}, asset.colour_report or {}
+    chosen = tr.get("chosen", "texture" if asset.texture is not None else "vertex colours")
+    print(f"build_asset: {total:.1f} s, CPU {cpu:.1f} s, peak {peak - rss_before:.0f} MiB above {rss_before:.0f}; "
+          f"vertex colours {cr.get('chosen', 'fitted')}, the files get {chosen}", flush=True)
+    table.add(len(asset.faces), tr.get("size"), numba.get_num_threads(), round(total, 1), round(cpu, 1),
+              None if cr.get("fit_seconds") is None else round(cr["fit_seconds"], 1),
+              None if tr.get("atlas_seconds") is None else round(tr["atlas_seconds"], 1),
+              None if tr.get("fit_seconds_raster") is None else round(tr["fit_seconds_raster"], 1),
+              None if tr.get("fit_seconds_solve") is None else round(tr["fit_seconds_solve"], 1),
+              round(rss_before), round(peak - rss_before), cr.get("chosen", "fitted"), chosen)
+    table.notes.append(
+        f"Run {args.run}: build_asset as a run's end calls it (vertex colours and texture fitted from one pass over "
+        f"the training views less every 10th, then scored on those to choose); {supersample}x{supersample} samples "
+        f"per pixel. 'vertex fit s': the vertex colours' solve (their rows come from the shared pass, 'rows s'). "
+        f"'peak above': resident memory above the loaded run's; process peak {peak_rss_mb():.0f} MiB.")
     path = table.write(args.out, "trisplat bench texture " + " ".join(argv))
     print(table.markdown())
     print(f"wrote {path}")
