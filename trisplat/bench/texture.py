@@ -159,10 +159,7 @@ def main(argv: list[str]) -> int:
         + f"; {supersample}x{supersample} samples per pixel; CG tolerance {tol:g}. 'peak above': the process's peak "
           f"resident memory during atlas, rows and the first solve, above its resident memory before (model and "
           f"capture loaded); process peak {peak_rss_mb():.0f} MiB.")
-    path = table.write(args.out, "trisplat bench texture " + " ".join(argv))
-    print(table.markdown())
-    print(f"wrote {path}")
-    return 0
+    return _write(table, args, argv)
 
 
 def _bench_asset(args: TextureArgs, argv: list[str], scene, data, supersample: int, near: float) -> int:
@@ -195,6 +192,10 @@ def _bench_asset(args: TextureArgs, argv: list[str], scene, data, supersample: i
         f"the training views less every 10th, then scored on those to choose); {supersample}x{supersample} samples "
         f"per pixel. 'vertex fit s': the vertex colours' solve (their rows come from the shared pass, 'rows s'). "
         f"'peak above': resident memory above the loaded run's; process peak {peak_rss_mb():.0f} MiB.")
+    return _write(table, args, argv)
+
+
+def _write(table: BenchTable, args: TextureArgs, argv: list[str]) -> int:
     path = table.write(args.out, "trisplat bench texture " + " ".join(argv))
     print(table.markdown())
     print(f"wrote {path}")
