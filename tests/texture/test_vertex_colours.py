@@ -112,7 +112,8 @@ def test_the_file_keeps_the_models_colours_where_the_fitted_ones_lose(tmp_path):
 
 
 def test_a_mesh_no_view_sees_keeps_the_models_colours_and_says_why():
-    """The fit needs photos of the mesh; a mesh behind every camera keeps band 0 (no crash at the end of a run)."""
+    """The fits need photos of the mesh; a mesh no camera sees keeps band 0 and no texture, and the reports say why
+    (no crash at the end of a run)."""
     from trisplat.texture.asset import build_asset
 
     mesh = trimesh.creation.icosphere(subdivisions=1)
@@ -122,9 +123,18 @@ def test_a_mesh_no_view_sees_keeps_the_models_colours_and_says_why():
     model = np.full((len(far), 3), 0.3, np.float32)
     scene = coloured_scene(far, mesh.faces, model)
     photos = [np.ones((16, 16, 3), np.float32)] * len(cams)
-    asset = build_asset(scene, PhotoData(cams, (1.0, 1.0, 1.0), np.arange(len(cams)), photos), texture_size=0)
-    assert asset.colour_report["chosen"] == "model" and "no view sees the mesh" in asset.colour_report["reason"]
-    np.testing.assert_allclose(asset.colors, model, atol=1e-6)
+    data = PhotoData(cams, (1.0, 1.0, 1.0), np.arange(len(cams)), photos)
+    for size in (0, 64):  # vertex colours alone, then with the texture (which no view sees either)
+        asset = build_asset(scene, data, texture_size=size)
+        assert asset.colour_report["chosen"] == "model" and "no view sees the mesh" in asset.colour_report["reason"]
+        np.testing.assert_allclose(asset.colors, model, atol=1e-6)
+        assert asset.texture is None
+        assert size == 0 or "no view sees the mesh" in asset.texture_report["reason"]
+    asset = build_asset(scene, data, texture_size=64, fit_colours=False)
+    assert asset.texture is None and "no view sees the mesh" in asset.texture_report["reason"]
+    from trisplat.texture.asset import choice_message
+
+    assert "no view sees the mesh" in choice_message(asset.texture_report)
 
 
 def test_one_pass_over_the_views_feeds_both_fits(tmp_path):

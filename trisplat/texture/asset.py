@@ -93,9 +93,12 @@ def build_asset(scene, data, texture_size: int = 2048, faces: int | None = None,
                 asset.colour_report = {"chosen": "model", "reason": str(exc)}
             return asset.colors
 
-        asset.texture, rep = texture_mesh(positions, fc, fitted_colours, data, size, supersample, near, indices=fit,
-                                          also=(vrows,))
-        asset.texture_report = rep.to_dict()
+        try:
+            asset.texture, rep = texture_mesh(positions, fc, fitted_colours, data, size, supersample, near,
+                                              indices=fit, also=(vrows,))
+            asset.texture_report = rep.to_dict()
+        except ValueError as exc:  # no fitting view sees the mesh: no texture, and why
+            asset.texture_report = {"chosen": "vertex colours", "reason": str(exc)}
         fit_colours = asset.colour_report.get("chosen") != "model"
     elif fit_colours:
         views = ((data.cameras[i], np.asarray(data.load_image(i), np.float32)) for i in fit)
@@ -106,9 +109,12 @@ def build_asset(scene, data, texture_size: int = 2048, faces: int | None = None,
         except ValueError as exc:  # no fitting view sees the mesh: the model's colours, and why
             asset.colour_report = {"chosen": "model", "reason": str(exc)}
             fit_colours = False
-    if size and asset.texture is None:
-        asset.texture, rep = texture_mesh(positions, fc, asset.colors, data, size, supersample, near, indices=fit)
-        asset.texture_report = rep.to_dict()
+    if size and asset.texture_report is None:
+        try:
+            asset.texture, rep = texture_mesh(positions, fc, asset.colors, data, size, supersample, near, indices=fit)
+            asset.texture_report = rep.to_dict()
+        except ValueError as exc:
+            asset.texture_report = {"chosen": "vertex colours", "reason": str(exc)}
     if held and (fit_colours or asset.texture is not None):
         choose_colours(asset, data, held, supersample, near, model_colors if fit_colours else None)
     return asset
@@ -193,6 +199,8 @@ def choice_message(report: dict | None) -> str | None:
     """One line for the log when the file got vertex colours instead of its texture (choose_colours), else None."""
     if not report or report.get("chosen") != "vertex colours":
         return None
+    if "reason" in report:
+        return f"texture: none ({report['reason']}); the mesh files keep vertex colours"
     return (f"texture: the mesh files keep vertex colours ({report['holdout_psnr_vertex_colours']:.2f} dB against "
             f"the texture's {report['holdout_psnr_texture']:.2f} dB on {report['holdout_views']} training views held "
             "out of the fit)")
