@@ -411,15 +411,16 @@ class FramePrefetch:
     order loads it in the caller's thread. Errors (a missing or corrupt file) are raised by the get() of that
     frame, as load_frame raises them. A context manager: the thread is joined on exit."""
 
-    def __init__(self, stream: RGBDStream, ids: list[int], downscale: int = 1):
+    def __init__(self, stream: RGBDStream, ids: list[int], downscale: int = 1, load=None):
         from concurrent.futures import ThreadPoolExecutor
 
         self.stream, self.ids, self.downscale = stream, list(ids), int(downscale)
+        self._load = load_frame if load is None else load  # load(stream, i, downscale): load_frame or a stand-in
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="trisplat-frames")
         self._next: tuple[int, object] | None = None
 
     def _submit(self, n: int) -> None:
-        self._next = (n, self._pool.submit(load_frame, self.stream, self.ids[n], self.downscale))
+        self._next = (n, self._pool.submit(self._load, self.stream, self.ids[n], self.downscale))
 
     def get(self, n: int) -> tuple[np.ndarray, np.ndarray]:
         ahead, self._next = self._next, None
@@ -428,7 +429,7 @@ class FramePrefetch:
         else:
             if ahead is not None:
                 ahead[1].cancel()
-            out = load_frame(self.stream, self.ids[n], self.downscale)
+            out = self._load(self.stream, self.ids[n], self.downscale)
         if n + 1 < len(self.ids):
             self._submit(n + 1)
         return out

@@ -423,7 +423,8 @@ def run_slam(stream: RGBDStream, out: Path, cfg: SlamConfig, resume: bool = Fals
     hurried_cfg = dataclasses.replace(cfg, track=dataclasses.replace(
         cfg.track, max_iters=tuple(max(1, int(i) // 2) for i in cfg.track.max_iters), rerender_m=float("inf"),
         rerender_deg=float("inf")))
-    with FramePrefetch(stream, ids, D) as frames:  # the next frame decodes while this one is tracked
+    # the next frame decodes while this one is tracked (load_frame looked up here: tests stand in for it)
+    with FramePrefetch(stream, ids, D, load=load_frame) as frames:
         for n in range(start, len(ids)):
             if cfg.realtime and n > start:
                 # frame n arrives (n - start) / input_fps after the session's first; behind = how late we are for it
