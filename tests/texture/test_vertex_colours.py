@@ -137,6 +137,28 @@ def test_a_mesh_no_view_sees_keeps_the_models_colours_and_says_why():
     assert "no view sees the mesh" in choice_message(asset.texture_report)
 
 
+def test_a_corrupt_photo_fails_the_fit_naming_it():
+    """Only "no view sees the mesh" falls back to the model's colours: a photo that cannot be read stops the fit
+    with its own error, whether the texture shares the pass or not."""
+    import pytest
+
+    from trisplat.texture.asset import build_asset
+
+    class Corrupt(PhotoData):
+        def load_image(self, i):
+            if i == 3:
+                raise ValueError("photos/0003.png: cannot identify image file")
+            return super().load_image(i)
+
+    mesh = trimesh.creation.icosphere(subdivisions=1)
+    cams = _cams(n_az=4, elevations=(0.0, 0.4), size=16)
+    photos = [np.ones((16, 16, 3), np.float32)] * len(cams)
+    scene = coloured_scene(mesh.vertices, mesh.faces, np.full((len(mesh.vertices), 3), 0.3, np.float32))
+    for size in (0, 64):
+        with pytest.raises(ValueError, match=r"photos/0003\.png: cannot identify"):
+            build_asset(scene, Corrupt(cams, (1.0, 1.0, 1.0), np.arange(len(cams)), photos), texture_size=size)
+
+
 def test_one_pass_over_the_views_feeds_both_fits(tmp_path):
     """build_asset rasterises each view once for the vertex colours and the texture: its colours and texture equal
     those of the two fits made apart (fit_vertex_colors, then texture_mesh with the fitted colours as prior)."""

@@ -65,6 +65,7 @@ def build_asset(scene, data, texture_size: int = 2048, faces: int | None = None,
     scores best on them: the texture, the fitted vertex colours or the model's band-0 colours (choose_colours)."""
     from trisplat.scene.sh import sh_dc_to_rgb
     from trisplat.texture import texture_mesh
+    from trisplat.texture.fit import NoViewSeesMesh
     from trisplat.texture.vertex_colours import VertexRows, fit_vertex_colors, solve_vertex_colors
 
     positions = scene.positions.detach().cpu().numpy()
@@ -89,7 +90,7 @@ def build_asset(scene, data, texture_size: int = 2048, faces: int | None = None,
                 asset.colors, stats = solve_vertex_colors(vrows.finish(model_colors), t)
                 asset.colour_report = {**{f"fit_{k}": v for k, v in asdict(stats).items()},
                                        "fit_rows": "from the texture fit's pass over the views"}
-            except ValueError as exc:  # no fitting view sees the mesh (the texture's fit then says so too)
+            except NoViewSeesMesh as exc:  # no fitting view sees the mesh (the texture's fit then says so too)
                 asset.colour_report = {"chosen": "model", "reason": str(exc)}
             return asset.colors
 
@@ -97,7 +98,7 @@ def build_asset(scene, data, texture_size: int = 2048, faces: int | None = None,
             asset.texture, rep = texture_mesh(positions, fc, fitted_colours, data, size, supersample, near,
                                               indices=fit, also=(vrows,))
             asset.texture_report = rep.to_dict()
-        except ValueError as exc:  # no fitting view sees the mesh: no texture, and why
+        except NoViewSeesMesh as exc:  # no fitting view sees the mesh: no texture, and why
             asset.texture_report = {"chosen": "vertex colours", "reason": str(exc)}
         fit_colours = asset.colour_report.get("chosen") != "model"
     elif fit_colours:
@@ -106,14 +107,14 @@ def build_asset(scene, data, texture_size: int = 2048, faces: int | None = None,
             asset.colors, stats = fit_vertex_colors(positions, fc, views, data.background, model_colors,
                                                     supersample, near)
             asset.colour_report = {f"fit_{k}": v for k, v in asdict(stats).items()}
-        except ValueError as exc:  # no fitting view sees the mesh: the model's colours, and why
+        except NoViewSeesMesh as exc:  # no fitting view sees the mesh: the model's colours, and why
             asset.colour_report = {"chosen": "model", "reason": str(exc)}
             fit_colours = False
     if size and asset.texture_report is None:
         try:
             asset.texture, rep = texture_mesh(positions, fc, asset.colors, data, size, supersample, near, indices=fit)
             asset.texture_report = rep.to_dict()
-        except ValueError as exc:
+        except NoViewSeesMesh as exc:
             asset.texture_report = {"chosen": "vertex colours", "reason": str(exc)}
     if held and (fit_colours or asset.texture is not None):
         choose_colours(asset, data, held, supersample, near, model_colors if fit_colours else None)

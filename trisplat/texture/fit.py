@@ -116,6 +116,10 @@ def view_rows(ss, photo, bg_lin: np.ndarray, taps, columns: int):
     return np.diff(A.indptr), A.indices.astype(np.int32), A.data, b.astype(np.float32), len(ys)
 
 
+class NoViewSeesMesh(ValueError):
+    """No fitting view sees the mesh: there is nothing to fit its colours or texture to."""
+
+
 class TexelRows:
     """The texel problem's rows, a view at a time (add), then the problem over the texels some sample reads or a
     chart covers (finish). One rasterisation of a view (trisplat.texture.raster.SurfaceSamples) can feed this and the
@@ -148,7 +152,7 @@ class TexelRows:
         """The problem (prior_colors [V,3] sRGB: what texels no photo sees are pulled towards); the rows added so
         far are handed over (this accumulator is empty afterwards)."""
         if not self.blocks:
-            raise ValueError("no view sees the mesh: nothing to fit a texture to")
+            raise NoViewSeesMesh("no view sees the mesh: nothing to fit a texture to")
         blocks, self.blocks = self.blocks, []
         return _texel_problem(self.atlas, self.faces, blocks, self.col_used, prior_colors, self.views, self.samples)
 

@@ -23,7 +23,7 @@ import scipy.sparse as sp
 
 from trisplat.io.colour import linear_to_srgb, srgb_to_linear
 from trisplat.mesh.orient import edge_table
-from trisplat.texture.fit import SMOOTHNESS, solve, view_rows
+from trisplat.texture.fit import SMOOTHNESS, NoViewSeesMesh, solve, view_rows
 from trisplat.texture.raster import surface_samples
 
 # Pull towards the model's colours, relative to the mean photo weight a vertex gets. Fitted on 90% of the training
@@ -84,7 +84,7 @@ class VertexRows:
         """The problem; the rows added so far are handed over (this accumulator is empty afterwards)."""
         (lengths, cols, vals, rhs), self.parts = self.parts, ([], [], [], [])
         if not lengths:
-            raise ValueError("no view sees the mesh: nothing to fit vertex colours to")
+            raise NoViewSeesMesh("no view sees the mesh: nothing to fit vertex colours to")
         indptr = np.r_[0, np.cumsum(np.concatenate(lengths))]
         A = sp.csr_matrix((np.concatenate(vals), np.concatenate(cols), indptr), shape=(len(indptr) - 1, self.n))
         prior = srgb_to_linear(np.clip(np.asarray(prior_colors, np.float64), 0.0, 1.0))
