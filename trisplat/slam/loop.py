@@ -345,7 +345,7 @@ def _jacobian(x, g: _Graph) -> csr_matrix:
     er = (g.Zr_inv * R[g.ii].inv() * R[g.jj]).as_rotvec()
     Jinv = _right_jacobian(er, inverse=True)
     A = Zt_inv @ RiT  # d et / d t_j
-    blocks = {  # (row block, node side) -> [E,3,3]
+    blocks = {  # (row block: 0 translation / 1 rotation, node i or j, column block: 0 t / 1 phi) -> [E,3,3]
         (0, "i", 0): -A, (0, "j", 0): A, (0, "i", 1): Zt_inv @ _skew(rel_t) @ Jr[g.ii],
         (1, "j", 1): Jinv @ Jr[g.jj], (1, "i", 1): -Jinv @ np.transpose(Rj, (0, 2, 1)) @ Ri @ Jr[g.ii],
     }
