@@ -170,6 +170,7 @@ def assemble(positions: np.ndarray, faces: np.ndarray, atlas: Atlas, views: Iter
 
 def _texel_problem(atlas: Atlas, faces: np.ndarray, blocks: list, col_used: np.ndarray, prior_colors: np.ndarray,
                    n_views: int, n_samples: int) -> TexelProblem:
+    """The views' row blocks (TexelRows) as one problem over the unknown texels, sorted and regularised."""
     S = atlas.size
     _return_freed_memory()  # the views' temporaries (lego: 2,695 -> 2,066 MiB at the peak below, 2048 texture)
 
