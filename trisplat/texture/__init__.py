@@ -11,7 +11,7 @@ import numpy as np
 from trisplat.io.gltf import TextureMap
 from trisplat.texture.atlas import Atlas, build_atlas
 from trisplat.texture.fit import FitStats, TexelRows, fit_texture, solve_texture
-from trisplat.texture.raster import surface_samples
+from trisplat.texture.raster import view_samples
 
 DEFAULT_TEXTURE_SIZE = 2048
 
@@ -45,11 +45,8 @@ def texture_mesh(positions: np.ndarray, faces: np.ndarray, colors, data, size: i
     idx = [int(i) for i in (data.train_indices if indices is None else indices)]
     t1 = time.perf_counter()
     rows = TexelRows(faces, atlas, data.background)
-    for i in idx:
-        cam = data.cameras[i]
-        photo = np.asarray(data.load_image(i), np.float32)
-        ss = surface_samples(positions, rows.faces, np.asarray(cam.world_to_camera, np.float64), np.asarray(cam.K),
-                             cam.width, cam.height, supersample, near)
+    views = ((data.cameras[i], np.asarray(data.load_image(i), np.float32)) for i in idx)
+    for ss, photo in view_samples(positions, rows.faces, views, supersample, near):
         for acc in (rows, *also):
             acc.add(ss, photo)
         del ss, photo

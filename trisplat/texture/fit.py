@@ -30,7 +30,7 @@ from scipy import ndimage
 
 from trisplat.io.colour import linear_to_srgb, linear_to_srgb_slope, srgb_to_linear
 from trisplat.texture.atlas import Atlas
-from trisplat.texture.raster import surface_samples
+from trisplat.texture.raster import surface_samples, view_samples
 from trisplat.texture.sampling import bilinear_taps
 from trisplat.texture.solve import NormalOperator, column_square_sums, pcg
 
@@ -162,9 +162,8 @@ def assemble(positions: np.ndarray, faces: np.ndarray, atlas: Atlas, views: Iter
     """The rows W^1/2 A and right-hand sides W^1/2 b of every view (see the module docstring) over the texels some
     sample reads or a chart covers, with what the regularisers need (prior colours, neighbour pairs)."""
     rows = TexelRows(faces, atlas, background)
-    for cam, photo in views:
-        rows.add(surface_samples(positions, rows.faces, np.asarray(cam.world_to_camera, np.float64),
-                                 np.asarray(cam.K), cam.width, cam.height, supersample, near), photo)
+    for ss, photo in view_samples(positions, rows.faces, views, supersample, near):
+        rows.add(ss, photo)
     return rows.finish(prior_colors)
 
 

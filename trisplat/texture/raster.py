@@ -59,3 +59,11 @@ def surface_samples(positions: np.ndarray, faces: np.ndarray, world_to_camera: n
     fid[hit] = keep[fid[hit]]
     bary = np.where(hit[..., None], out.rgb.numpy(), 0.0).astype(np.float32)
     return SurfaceSamples(face_id=fid, bary=bary, supersample=s)
+
+
+def view_samples(positions: np.ndarray, faces: np.ndarray, views, supersample: int = 2, near: float = 0.01):
+    """(SurfaceSamples, photo) of each (camera, photo) in `views`, rasterised one view at a time (a generator: one
+    view's samples are held at a time). The colour fits feed their row accumulators from it."""
+    for cam, photo in views:
+        yield surface_samples(positions, faces, np.asarray(cam.world_to_camera, np.float64), np.asarray(cam.K),
+                              cam.width, cam.height, supersample, near), photo

@@ -24,7 +24,7 @@ import scipy.sparse as sp
 from trisplat.io.colour import linear_to_srgb, srgb_to_linear
 from trisplat.mesh.orient import edge_table
 from trisplat.texture.fit import SMOOTHNESS, NoViewSeesMesh, solve, view_rows
-from trisplat.texture.raster import surface_samples
+from trisplat.texture.raster import view_samples
 
 # Pull towards the model's colours, relative to the mean photo weight a vertex gets. Fitted on 90% of the training
 # views, scored on the other 10% and the test views (ad hoc, 2026-11-26), prior 0.01 / 0.1 / 1 / 3: Spot's surface
@@ -96,9 +96,8 @@ def assemble_vertices(positions: np.ndarray, faces: np.ndarray, views: Iterable,
                       prior_colors: np.ndarray, supersample: int = 2, near: float = 0.01) -> VertexProblem:
     """The rows W^1/2 A and right-hand sides W^1/2 b of every view over the mesh's vertices (module docstring)."""
     rows = VertexRows(len(positions), faces, background)
-    for cam, photo in views:
-        rows.add(surface_samples(positions, rows.faces, np.asarray(cam.world_to_camera, np.float64),
-                                 np.asarray(cam.K), cam.width, cam.height, supersample, near), photo)
+    for ss, photo in view_samples(positions, rows.faces, views, supersample, near):
+        rows.add(ss, photo)
     return rows.finish(prior_colors)
 
 

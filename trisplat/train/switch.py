@@ -42,8 +42,8 @@ class SurfaceConfig:
     max_voxels: int = 48_000_000
     """grid size cap (memory: about 9 bytes per voxel; time: voxels x views projections)."""
     truncation_voxels: float = 3.0
-    """TSDF truncation distance (voxels). The trainer passes its --surface-truncation (6); SLAM and the merge of
-    partitioned blocks use this default."""
+    """TSDF truncation distance (voxels). The trainer passes trisplat.train.trainer.surface_truncation (6 voxels for
+    objects, 3 for real photos, or --surface-truncation); SLAM and the merge of partitioned blocks use this default."""
     retry_truncations: tuple[float, ...] = ()
     """truncations (fractions of the fused box's longest side) to fuse with in turn while the surface carves away
     more than `max_carved` of what the views saw (carved_fraction): a real capture's soup can put a surface at
