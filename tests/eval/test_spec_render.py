@@ -75,3 +75,40 @@ def test_vertex_colour_asset_renders_as_its_glb_does(tmp_path):
     assert abs(direct[20, 20, 0] - linear_to_srgb(0.5 / 20 + 0.5)) < 5e-3  # pixel 20's centre is at u = 0.525
     with pytest.raises(ValueError, match="colours"):
         vertex_colour_asset(QUAD, FACES, colours[:3])
+
+
+def test_linear_light_model_renders_as_its_vertex_colour_file_does():
+    """A model blending in linear light (TriangleScene.linear_light) shows what a glTF viewer shows of its vertex
+    colours, edges averaged over supersamples included; blending the sRGB values, as the soup does, does not."""
+    import torch
+
+    from trisplat.eval.spec_render import vertex_colour_asset
+    from trisplat.render import rasterize, rasterize_hard
+
+    rng = np.random.default_rng(3)
+    # a bumpy grid of 8x8 quads, tilted away from the camera, with random saturated vertex colours
+    u, v = np.meshgrid(np.linspace(-1.2, 1.2, 9), np.linspace(-1.2, 1.2, 9))
+    pos = np.stack([u, v, 0.6 * u + 0.1 * rng.standard_normal(u.shape)], -1).reshape(-1, 3)
+    idx = np.arange(81).reshape(9, 9)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, 1:].ravel(), idx[1:, :-1].ravel()
+    faces = np.concatenate([np.stack([a, c, b], 1), np.stack([a, d, c], 1)])
+    colours = rng.choice([0.02, 0.3, 0.95], size=pos.shape)
+    w2c = W2C.copy()
+    w2c[0, 3] = 0.013  # edges off the pixel grid
+    bg = (0.2, 0.4, 0.9)
+    viewer = render_asset(vertex_colour_asset(pos, faces, colours), w2c, K, 40, 40, bg, supersample=2)
+
+    P, F = torch.tensor(pos, dtype=torch.float32), torch.tensor(faces, dtype=torch.int32)
+    C = torch.tensor(colours, dtype=torch.float32)
+    T, Kt = torch.tensor(w2c, dtype=torch.float32), torch.tensor(K, dtype=torch.float32)
+
+    def psnr(img):
+        return float(-10 * np.log10(np.mean((img.detach().numpy().clip(0, 1) - viewer) ** 2)))
+
+    hard = {ll: rasterize_hard(P, F, C, T, Kt, 40, 40, torch.tensor(bg), perspective_correct=True, supersample=2,
+                               linear_light=ll).rgb for ll in (True, False)}
+    assert psnr(hard[True]) > 50
+    assert psnr(hard[False]) < 30  # sRGB blending darkens every mixed colour: visibly another picture
+    soft = rasterize(P, F, C, torch.ones(len(P)), 1e-3, T, Kt, 40, 40, background=torch.tensor(bg), supersample=2,
+                     perspective_correct=True, linear_light=True, alpha_max=1.0 - 1e-6).rgb
+    assert psnr(soft) > 40  # the training renderer with a sharp window and opaque faces: the same picture

@@ -39,7 +39,20 @@ def test_exact_float32_round_trip(tmp_path, degree):
     assert torch.equal(back.opacity_logit, scene.opacity_logit)
     assert torch.equal(back.faces, scene.faces)
     assert back.opacity_floor == scene.opacity_floor
+    assert back.linear_light is False
     np.testing.assert_array_equal(N2, N)
+
+
+def test_linear_light_round_trips_and_a_bad_value_is_named(tmp_path):
+    import dataclasses
+
+    scene, N = dataclasses.replace(_scene(1), linear_light=True), _normalization()
+    save_model_ply(tmp_path / "model.ply", scene, N)
+    assert load_model_ply(tmp_path / "model.ply")[0].linear_light is True
+    raw = (tmp_path / "model.ply").read_bytes().replace(b"comment linear_light 1", b"comment linear_light 7")
+    (tmp_path / "bad.ply").write_bytes(raw)
+    with pytest.raises(ValueError, match="bad.ply: malformed header comment .*linear_light must be 0 or 1"):
+        load_model_ply(tmp_path / "bad.ply")
 
 
 def test_file_holds_capture_frame_and_3dgs_property_layout(tmp_path):

@@ -42,6 +42,7 @@ SCENES = [
     (4, "mesh", {"opacity_mode": "mean"}), (5, "soup", {"tile_size": 8}), (6, "soup", {"supersample": 2}),
     (7, "mesh", {"perspective_correct": True, "tile_size": 32}),
     (8, "deep", {"tile_size": 32}),  # ~100 pairs per tile: several gather blocks, tiles that turn opaque early
+    (9, "soup", {"linear_light": True}), (10, "mesh", {"linear_light": True, "supersample": 2}),
 ]
 
 

@@ -155,6 +155,12 @@ def test_surface_switch_ends_in_one_connected_surface(small_scene, tmp_path):
 
     soup = load_checkpoint(tmp_path / "s" / layout.SOUP_CHECKPOINT)
     assert soup["step"] == 24 and not soup["extra"]["connected"]
+    # the soup blends sRGB values; the surface blends in linear light, as viewers show its colours, and says so in
+    # its model file
+    from trisplat.io import load_model_ply
+
+    assert not soup["linear_light"] and tr.ts.linear_light
+    assert load_model_ply(tmp_path / "s" / "model.ply")[0].linear_light
     # the surface was refined once, an epoch (16 views) after the switch, and grew by conforming splits
     refine = [h for h in hist if "refine" in h]
     assert [h["step"] for h in refine] == [40] and refine[0]["refine"]["faces_added"] > 0
@@ -173,6 +179,7 @@ def test_surface_switch_ends_in_one_connected_surface(small_scene, tmp_path):
     tr = _trainer(tiny_scene, tmp_path / "soup", steps=20, connect_at=0.5, output="soup")
     result = tr.train()
     assert not tr.connected and result.scene.num_vertices == 3 * result.scene.num_faces
+    assert not result.scene.linear_light
 
 
 def test_minutes_plan_prices_supersampled_steps(tiny_scene, tmp_path):

@@ -51,7 +51,8 @@ def render_view(scene, camera, mode: str, background, sigma: float | None = None
     """Render one camera of a TriangleScene: float32 numpy [H,W,3] in [0,1].
 
     hard: the opaque z-buffer (rasterize_hard); soft: the training renderer at `sigma` with the vertices' opacities.
-    Both evaluate the SH colour of each vertex along its view direction. options: RenderOptions fields the run
+    Both evaluate the SH colour of each vertex along its view direction, and blend in linear light where the scene
+    says so (TriangleScene.linear_light). options: RenderOptions fields the run
     trained with (near, tile_size, backend); the hard renderer takes only `near` from them. supersample: each
     pixel is the mean of s x s samples (anti-aliasing; 1 = one sample at the pixel centre). device: render with the
     scene's tensors there (None: where they are); on a CUDA device both renderers use the Warp kernels (a run's
@@ -73,11 +74,12 @@ def render_view(scene, camera, mode: str, background, sigma: float | None = None
         if mode == "hard":
             near = {"near": options["near"]} if "near" in options else {}
             out = render.rasterize_hard(scene.positions, faces, scene.sh, w2c, K, camera.width, camera.height, bg,
-                                        supersample=supersample, **near)  # fmt: skip
+                                        supersample=supersample, linear_light=scene.linear_light, **near)  # fmt: skip
         elif mode == "soft":
             if sigma is None:
                 raise ValueError("soft rendering needs sigma")
             options["supersample"] = supersample
+            options["linear_light"] = scene.linear_light
             out = render.rasterize(scene.positions, faces, scene.sh, scene.opacities(), sigma, w2c, K, camera.width,
                                    camera.height, background=bg, **options)  # fmt: skip
         else:

@@ -31,3 +31,22 @@ def linear_to_srgb_slope(x) -> np.ndarray:
     light grows once encoded."""
     x = np.clip(np.asarray(x, dtype=np.float64), 0.0, 1.0)
     return np.where(x <= LINEAR_SEGMENT, SRGB_SLOPE, 1.055 / 2.4 * np.maximum(x, LINEAR_SEGMENT) ** (1.0 / 2.4 - 1.0))
+
+
+def srgb_to_linear_torch(x):
+    """srgb_to_linear for torch tensors, differentiable: negative values count as 0, values above 1 follow the same
+    curve (a colour the optimiser pushes past white still gets a gradient back)."""
+    import torch
+
+    x = x.clamp_min(0.0)
+    return torch.where(x <= SRGB_LINEAR_SEGMENT, x / SRGB_SLOPE,
+                       ((x.clamp_min(SRGB_LINEAR_SEGMENT) + 0.055) / 1.055) ** 2.4)
+
+
+def linear_to_srgb_torch(x):
+    """linear_to_srgb for torch tensors, differentiable: negative values count as 0, values above 1 follow the same
+    curve (clip the result for display)."""
+    import torch
+
+    x = x.clamp_min(0.0)
+    return torch.where(x <= LINEAR_SEGMENT, x * SRGB_SLOPE, 1.055 * x.clamp_min(LINEAR_SEGMENT) ** (1.0 / 2.4) - 0.055)

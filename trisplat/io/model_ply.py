@@ -5,7 +5,8 @@ Layout (binary little endian), readable by any PLY reader and close to 3DGS file
                   float f_dc_0..2 (SH band 0, RGB); float f_rest_0..3*(K-1)-1 (higher bands, channel-major as in
                   3DGS: f_rest_{c*(K-1) + k-1} = sh[:, k, c]); float opacity (the logit).
   element face:   list uchar int vertex_indices.
-  comments:       'trisplat model', 'sh_degree D', 'opacity_floor F', 'normalization m00 ... m33' (row-major).
+  comments:       'trisplat model', 'sh_degree D', 'opacity_floor F', 'normalization m00 ... m33' (row-major), and
+                  'linear_light 1' when the colours are blended in linear light (TriangleScene.linear_light; absent: 0).
 Positions are stored as doubles computed in float64 from the normalised frame, so reading them back and
 re-applying the normalisation returns the float32 positions bit for bit (unless a coordinate is below ~1e-8 of
 the normalisation's translation, where the capture frame cannot hold it; the error there is ~1e-16 units).
@@ -77,7 +78,7 @@ def save_model_ply(path: str | Path, scene: TriangleScene, normalization: np.nda
         f"sh_degree {sh_degree_from_bases(K)}",
         f"opacity_floor {float(scene.opacity_floor)!r}",
         "normalization " + " ".join(repr(float(v)) for v in N.reshape(-1)),
-    ]
+    ] + (["linear_light 1"] if scene.linear_light else [])
     elements = [
         PlyElement.describe(vert, "vertex"),
         PlyElement.describe(face, "face", len_types={"vertex_indices": "u1"}),
@@ -109,6 +110,9 @@ def load_model_ply(path: str | Path) -> tuple[TriangleScene, np.ndarray]:
     try:
         degree = int(meta["sh_degree"])
         floor = float(meta["opacity_floor"])
+        linear = meta.get("linear_light", "0").strip()
+        if linear not in ("0", "1"):
+            raise ValueError(f"linear_light must be 0 or 1, got {linear!r}")
         N = np.array([float(v) for v in meta["normalization"].split()], dtype=np.float64)
     except ValueError as exc:
         raise ValueError(f"{path}: malformed header comment ({exc})") from exc
@@ -149,5 +153,6 @@ def load_model_ply(path: str | Path) -> tuple[TriangleScene, np.ndarray]:
         opacity_logit=torch.from_numpy(np.asarray(v["opacity"], dtype=np.float32).copy()),
         faces=torch.from_numpy(faces),
         opacity_floor=floor,
+        linear_light=linear == "1",
     )
     return scene, N

@@ -1,6 +1,7 @@
 """Hard (opaque) rendering: an ordinary z-buffer rasterizer in Numba; each pixel shows its nearest face."""
 from __future__ import annotations
 
+import dataclasses
 import math
 import threading
 
@@ -9,8 +10,9 @@ import numpy as np
 import torch
 from numba import njit, prange
 
+from trisplat.io.colour import linear_to_srgb_torch, srgb_to_linear_torch
 from trisplat.render.inputs import check_supersample, validate
-from trisplat.render.types import RenderOutput, downsample
+from trisplat.render.types import RenderOutput, downsample, stack_views
 from trisplat.scene.sh import eval_sh
 
 DEPTH_SLABS = 64  # front-to-back passes by nearest-vertex depth (more: better culling; an ad-hoc timing at 1M faces,
@@ -297,8 +299,25 @@ def hard_resolve(uvz, order, pos, faces, w2c, colors, fid, width, height, perspe
             normal[iy, ix, 0], normal[iy, ix, 1], normal[iy, ix, 2] = nx, ny, nz
 
 
+def _hard_linear_light(vi, near: float, perspective_correct: bool, ss: int, backend: str | None) -> RenderOutput:
+    """rasterize_hard with linear_light: each camera's colours (SH evaluated there) and the background decoded to
+    linear, rendered, the pixels encoded back to sRGB."""
+    outs = []
+    for b in range(vi.world_to_camera.shape[0]):
+        w2c = vi.world_to_camera[b]
+        col = vi.colors
+        if col.ndim == 3:
+            R, t = w2c[:3, :3], w2c[:3, 3]
+            col = eval_sh(col, vi.positions - (-(R.T @ t)))
+        out = rasterize_hard(vi.positions, vi.faces, srgb_to_linear_torch(col), w2c, vi.K[b], vi.width, vi.height,
+                             srgb_to_linear_torch(vi.background), near, perspective_correct, ss, backend)
+        outs.append(dataclasses.replace(out, rgb=linear_to_srgb_torch(out.rgb)))
+    return outs[0] if not vi.batched else stack_views(outs)
+
+
 def rasterize_hard(positions, faces, colors, world_to_camera, K, width, height, background=None, near: float = 0.01,
-                   perspective_correct: bool = False, supersample: int = 1, backend: str | None = None) -> RenderOutput:
+                   perspective_correct: bool = False, supersample: int = 1, backend: str | None = None,
+                   linear_light: bool = False) -> RenderOutput:
     """Opaque z-buffer render: each pixel centre shows the nearest face covering it (no gradients).
 
     supersample s > 1: each pixel is the mean of an s x s grid of such samples (supersampling anti-aliasing, the
@@ -311,12 +330,16 @@ def rasterize_hard(positions, faces, colors, world_to_camera, K, width, height, 
     face normal, camera frame), face_id (-1 where empty), max_weight (1 for faces that win at least one sample),
     pairs_evaluated (sample/face depth tests). backend: 'numba' (CPU) or 'warp' (NVIDIA Warp kernels on the tensors'
     device, see render.warp_backend; needs the gpu extra); None: warp for CUDA tensors when Warp is installed, else
-    numba.
+    numba. linear_light: colours and background decoded from sRGB to linear light, interpolated and averaged over the
+    supersamples there, each pixel encoded back to sRGB (RenderOptions.linear_light; how a glTF viewer shows the
+    same vertex colours).
     """
     vi = validate(positions, faces, colors, None, 1.0, world_to_camera, K, width, height, background)
     if not near > 0:
         raise ValueError(f"near must be > 0, got {near}")
     ss = check_supersample(supersample)
+    if linear_light:
+        return _hard_linear_light(vi, near, perspective_correct, ss, backend)
     if backend is None:
         from trisplat.render.warp_backend import available
 
@@ -373,13 +396,4 @@ def rasterize_hard(positions, faces, colors, world_to_camera, K, width, height, 
                 rgb=torch.from_numpy(rgb).to(dt), alpha=(face_id >= 0).to(dt), depth=torch.from_numpy(depth).to(dt),
                 normal=torch.from_numpy(normal).to(dt), max_weight=won, face_id=face_id, pairs_evaluated=int(evals),
                 faces_visible=int(order.shape[0])), ss))
-    if not vi.batched:
-        return outs[0]
-    return RenderOutput(rgb=torch.stack([o.rgb for o in outs]), alpha=torch.stack([o.alpha for o in outs]),
-                        depth=torch.stack([o.depth for o in outs]), normal=torch.stack([o.normal for o in outs]),
-                        max_weight=torch.stack([o.max_weight for o in outs]),
-                        face_id=torch.stack([o.face_id for o in outs]),
-                        pairs_evaluated=sum(o.pairs_evaluated for o in outs),
-                        faces_visible=sum(o.faces_visible for o in outs))
-
-
+    return outs[0] if not vi.batched else stack_views(outs)

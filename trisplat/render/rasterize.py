@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import torch
 
+from trisplat.io.colour import linear_to_srgb_torch, srgb_to_linear_torch
 from trisplat.render.inputs import make_options, validate
-from trisplat.render.types import RenderOptions, RenderOutput, downsample
+from trisplat.render.types import RenderOptions, RenderOutput, downsample, stack_views
 from trisplat.scene.sh import eval_sh
 
 
@@ -23,6 +26,9 @@ def _render_view(positions, faces, colors, opacities, sigma, w2c, K, width, heig
             colors = eval_sh_warp(colors, positions - camera_center(w2c))
         else:
             colors = eval_sh(colors, positions - camera_center(w2c))
+    if opts.linear_light:
+        colors = srgb_to_linear_torch(colors)
+        bg = srgb_to_linear_torch(bg)
     s = opts.supersample
     if s > 1:
         K = K.clone()
@@ -40,7 +46,10 @@ def _render_view(positions, faces, colors, opacities, sigma, w2c, K, width, heig
         from trisplat.render.splat import render_numba
 
         out = render_numba(positions, faces, colors, opacities, sigma, w2c, K, W, H, bg, opts)
-    return downsample(out, s)
+    out = downsample(out, s)
+    if opts.linear_light:
+        out = dataclasses.replace(out, rgb=linear_to_srgb_torch(out.rgb))
+    return out
 
 
 def rasterize(
@@ -52,7 +61,7 @@ def rasterize(
     direction from the camera centre); opacities [V] in [0,1] (face opacity = min of its vertices, or mean);
     sigma > 0 window sharpness; world_to_camera [4,4] (OpenCV axes) or [B,4,4]; K [3,3] or [B,3,3]; pixel centres
     at +0.5; background None (black) or [3]. options: fields of RenderOptions (near, supersample, tile_size,
-    opacity_mode, perspective_correct, backend, ...). Torch tensors or numpy arrays are accepted.
+    opacity_mode, perspective_correct, linear_light, backend, ...). Torch tensors or numpy arrays are accepted.
 
     Returns RenderOutput with rgb [H,W,3], alpha [H,W], depth [H,W] (expected view depth), normal [H,W,3]
     (camera frame), max_weight [F], face_id [H,W] (int64); batched cameras add a leading B axis.
@@ -79,16 +88,7 @@ def rasterize(
     ]
     if not vi.batched:
         return outs[0]
-    return RenderOutput(
-        rgb=torch.stack([o.rgb for o in outs]),
-        alpha=torch.stack([o.alpha for o in outs]),
-        depth=torch.stack([o.depth for o in outs]),
-        normal=torch.stack([o.normal for o in outs]),
-        max_weight=torch.stack([o.max_weight for o in outs]),
-        face_id=torch.stack([o.face_id for o in outs]),
-        pairs_evaluated=sum(o.pairs_evaluated for o in outs),
-        faces_visible=sum(o.faces_visible for o in outs),
-    )
+    return stack_views(outs)
 
 
 __all__ = ["rasterize", "camera_center"]

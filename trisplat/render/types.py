@@ -1,5 +1,6 @@
-"""RenderOutput and RenderOptions, the typed hand-off between the rasterizer and everything that uses images, and
-downsample: the box filter that turns a supersampled RenderOutput into its 1x image."""
+"""RenderOutput and RenderOptions, the typed hand-off between the rasterizer and everything that uses images;
+downsample: the box filter that turns a supersampled RenderOutput into its 1x image; stack_views: per-camera outputs
+as one batch."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -17,6 +18,9 @@ class RenderOptions:
     tile_size: tile edge in pixels (the per-tile depth sort granularity).
     opacity_mode: 'min' (Triangle Splatting+: the arg-min vertex gets the gradient) or 'mean' (SLAM variant).
     perspective_correct: interpolate colours with perspective-correct barycentrics instead of screen-space ones.
+    linear_light: blend in linear light: the per-vertex sRGB colours (and the background) are decoded to linear
+    (IEC 61966-2-1), interpolated, composited and averaged over the supersamples there, and the pixel is encoded back
+    to sRGB; as a glTF viewer shows the same vertex colours (COLOR_0 is linear). False: all of it on the sRGB values.
     alpha_max: cap on per-pixel alpha (0.99). alpha_min: skip below (1/255). transmittance_min: early stop (1e-4).
     backend: 'numba' (CPU kernels), 'warp' (NVIDIA Warp kernels on the tensors' device: CUDA, or Warp's CPU device;
     needs the gpu extra) or 'reference' (dense PyTorch, the spec in code; slow, for tests).
@@ -31,6 +35,7 @@ class RenderOptions:
     tile_size: int = 16
     opacity_mode: str = "min"
     perspective_correct: bool = False
+    linear_light: bool = False
     alpha_max: float = 0.99
     alpha_min: float = 1.0 / 255.0
     transmittance_min: float = 1e-4
@@ -83,4 +88,19 @@ def downsample(out: RenderOutput, s: int) -> RenderOutput:
         face_id=out.face_id[s // 2 :: s, s // 2 :: s].contiguous(),
         pairs_evaluated=out.pairs_evaluated,
         faces_visible=out.faces_visible,
+    )
+
+
+def stack_views(outs: list[RenderOutput]) -> RenderOutput:
+    """Per-camera RenderOutputs as one batched RenderOutput: a leading B axis on every image and per-face output,
+    the counters summed."""
+    return RenderOutput(
+        rgb=torch.stack([o.rgb for o in outs]),
+        alpha=torch.stack([o.alpha for o in outs]),
+        depth=torch.stack([o.depth for o in outs]),
+        normal=torch.stack([o.normal for o in outs]),
+        max_weight=torch.stack([o.max_weight for o in outs]),
+        face_id=torch.stack([o.face_id for o in outs]),
+        pairs_evaluated=sum(o.pairs_evaluated for o in outs),
+        faces_visible=sum(o.faces_visible for o in outs),
     )

@@ -13,7 +13,7 @@ from contextlib import contextmanager
 
 import torch
 
-from trisplat.render.types import RenderOptions, RenderOutput
+from trisplat.render.types import RenderOptions, RenderOutput, stack_views
 
 INSTALL_HINT = "backend='warp' needs NVIDIA Warp: pip install 'trisplat[gpu]' (or pip install warp-lang)"
 
@@ -286,12 +286,7 @@ def rasterize_hard_warp(vi, near: float, perspective_correct: bool, ss: int) -> 
             outs.append(downsample(out, ss))
     if not vi.batched:
         return outs[0]
-    return RenderOutput(rgb=torch.stack([o.rgb for o in outs]), alpha=torch.stack([o.alpha for o in outs]),
-                        depth=torch.stack([o.depth for o in outs]), normal=torch.stack([o.normal for o in outs]),
-                        max_weight=torch.stack([o.max_weight for o in outs]),
-                        face_id=torch.stack([o.face_id for o in outs]),
-                        pairs_evaluated=sum(o.pairs_evaluated for o in outs),
-                        faces_visible=sum(o.faces_visible for o in outs))
+    return stack_views(outs)
 
 
 DEVICE_CHOICES = ("auto", "cpu", "cuda")

@@ -17,6 +17,8 @@ class TriangleScene:
     opacity_logit: float32 [V]; vertex opacity = floor + (1 - floor) * sigmoid(logit).
     faces: int32 [F,3] vertex indices; counter-clockwise seen from outside = outward normal.
     opacity_floor: the current floor in [0, 1).
+    linear_light: the vertex colours are blended in linear light when rendered (render.RenderOptions.linear_light):
+    the connected surface of a run with surface_linear_light, rendered as a glTF viewer renders its vertex colours.
     """
 
     positions: torch.Tensor
@@ -24,6 +26,7 @@ class TriangleScene:
     opacity_logit: torch.Tensor
     faces: torch.Tensor
     opacity_floor: float = 0.0
+    linear_light: bool = False
 
     def __post_init__(self) -> None:
         V = self.positions.shape[0]

@@ -29,6 +29,7 @@ class TrainableScene:
     optimizer: torch.optim.Adam
     faces: torch.Tensor
     opacity_floor: float = 0.0
+    linear_light: bool = False  # TriangleScene.linear_light
     face_stats: dict[str, torch.Tensor] = field(default_factory=dict)
 
     @property
@@ -52,6 +53,7 @@ class TrainableScene:
             opacity_logit=self.params["opacity_logit"].detach().clone(),
             faces=self.faces.to(torch.int32).clone(),
             opacity_floor=self.opacity_floor,
+            linear_light=self.linear_light,
         )
 
     def reset_face_stats(self) -> None:
@@ -91,7 +93,7 @@ def make_trainable(scene: TriangleScene, lrs: dict[str, float]) -> TrainableScen
     groups = [{"params": [params[n]], "lr": lrs.get(n, 0.0), "name": n} for n in VERTEX_PARAMS]
     opt = make_adam(groups)
     ts = TrainableScene(params=params, optimizer=opt, faces=scene.faces.to(torch.int64).clone(),
-                        opacity_floor=scene.opacity_floor)
+                        opacity_floor=scene.opacity_floor, linear_light=scene.linear_light)
     ts.reset_face_stats()
     return ts
 
@@ -169,6 +171,7 @@ def replace_scene(ts: TrainableScene, scene: TriangleScene) -> None:
         ts.params[name] = new
     ts.faces = scene.faces.to(torch.int64).to(ts.faces.device).clone()
     ts.opacity_floor = float(scene.opacity_floor)
+    ts.linear_light = bool(scene.linear_light)
     ts.reset_face_stats()
 
 

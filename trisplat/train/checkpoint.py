@@ -39,6 +39,7 @@ def checkpoint_state(ts: ops.TrainableScene, step: int, total_steps: int, genera
         "faces": ts.faces.clone(),
         "face_stats": {k: v.clone() for k, v in ts.face_stats.items()},
         "opacity_floor": ts.opacity_floor,
+        "linear_light": ts.linear_light,
         "generator": generator.get_state(),
         "extra": extra,
     }
@@ -57,7 +58,8 @@ def restore_trainable(ckpt: dict) -> ops.TrainableScene:
     stats = {k: ckpt["face_stats"][k].clone() if k in ckpt["face_stats"] else torch.zeros(F)
              for k in ops.FACE_STATS}  # checkpoints of older versions lack the newer statistics: they start at zero
     return ops.TrainableScene(params=params, optimizer=opt, faces=ckpt["faces"].clone(),
-                              opacity_floor=float(ckpt["opacity_floor"]), face_stats=stats)
+                              opacity_floor=float(ckpt["opacity_floor"]),
+                              linear_light=bool(ckpt.get("linear_light", False)), face_stats=stats)
 
 
 def load_checkpoint(path: Path) -> dict:

@@ -235,6 +235,11 @@ class TrainConfig:
     1 = no refinement."""
     surface_refine_until: float = 0.85
     """Progress (0-1) from which the connected surface is no longer refined."""
+    surface_linear_light: bool = True
+    """After the switch, blend the vertex colours in linear light (render.RenderOptions.linear_light), as every glTF
+    viewer blends a mesh's vertex colours and texels: the fine-tuned colours are then the ones the exported files
+    show. False: blend the sRGB values, as the soup does (the surface then looks smoother in the run than in a
+    viewer)."""
 
     # -- asset export
     texture_size: int = 2048

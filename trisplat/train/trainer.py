@@ -251,7 +251,7 @@ class Trainer:
             self.sigma(p) if sigma is None else sigma,
             torch.as_tensor(cam.world_to_camera, dtype=torch.float32), torch.as_tensor(cam.K, dtype=torch.float32),
             cam.width, cam.height, background=self.background, near=self.cfg.near, supersample=supersample,
-            tile_size=self.cfg.tile_size, backend=self.cfg.backend)
+            tile_size=self.cfg.tile_size, backend=self.cfg.backend, linear_light=self.ts.linear_light)
 
     def gt(self, cam_index: int) -> torch.Tensor:
         return torch.tensor(np.asarray(self.data.load_image(cam_index), dtype=np.float32), device=self.device)
@@ -459,6 +459,7 @@ class Trainer:
         ops.set_faces(self.ts, connected.faces)
         ops.remove_orphan_vertices(self.ts)
         self.connected = True
+        self.ts.linear_light = self.cfg.surface_linear_light
         self._log({"step": self.step, "switch": {"method": "restricted_delaunay", "faces": self.ts.num_faces,
                                                  "vertices": self.ts.num_vertices}})
 
@@ -520,6 +521,7 @@ class Trainer:
             report.notes.append(f"a background sphere of {sky.num_faces} faces at radius {radius:.2f}")
         ops.replace_scene(self.ts, surface)
         self.connected = True
+        self.ts.linear_light = self.cfg.surface_linear_light
         self._log({"step": self.step, "wall_s": round(self.wall_s, 3), "switch": report.to_dict(),
                    "far_faces": self.far_faces})
         if say:
