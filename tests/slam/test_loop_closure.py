@@ -157,7 +157,7 @@ def test_pose_graph_jacobian_matches_finite_differences():
     rng = np.random.default_rng(3)
     n = 6
     poses = []
-    for k in range(n):
+    for _ in range(n):
         T = np.eye(4)
         T[:3, :3] = Rotation.from_rotvec(rng.normal(0, 1.0, 3)).as_matrix()
         T[:3, 3] = rng.normal(0, 1.0, 3)
