@@ -84,6 +84,7 @@ def test_two_blocks_merge_into_one_connected_surface(local_run, street):
     from trisplat.io import load_model_ply
 
     scene, _ = load_model_ply(local_run / layout.MODEL)
+    assert scene.linear_light  # a connected surface: rendered as a viewer shows its colours
     pos, faces = scene.positions.numpy().astype(np.float64), scene.faces.numpy()
     cell = plan.cell_of(pos)
     assert set(np.unique(cell)) == {0, 1}

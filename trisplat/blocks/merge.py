@@ -120,6 +120,7 @@ def merge_blocks(plan, data, block_dirs: list[Path], out: Path, cfg, data_path: 
     trainer = Trainer(cfg, data, out, initial=surface, show_progress=False, data_options=data_options,
                       data_path=data_path)
     trainer.connected, trainer.switched_p, trainer.far_faces = True, cfg.connect_at, int(far.sum())
+    trainer.ts.linear_light = cfg.surface_linear_light  # a connected surface, rendered as a viewer shows it
     trainer.save_checkpoint()
     metrics = trainer.finish()
     metrics["blocks"] = {"count": len(plan.blocks), "grid": list(plan.grid), "clipped_faces": kept,
