@@ -36,6 +36,33 @@ def test_photos_register_and_cameras_match_the_truth(synthetic_frames, synthetic
     assert sorted(p.name for p in folder.iterdir()) == names
 
 
+def test_the_global_mapper_registers_the_photos_where_the_cameras_were(synthetic_frames, tmp_path, monkeypatch):
+    """mapper='global' (COLMAP's global mapper) instead of the incremental one: every photo registered, camera
+    centres and focal length as the renderer's; the mapper is part of the cache fingerprint; a bad name is refused."""
+    from trisplat.sfm import PosesOptions
+    from trisplat.sfm.cache import fingerprint
+
+    import pycolmap
+
+    def no_incremental(*args, **kwargs):
+        raise AssertionError("the incremental mapper ran")
+
+    monkeypatch.setattr(pycolmap, "incremental_mapping", no_incremental)
+    folder, cams = synthetic_frames
+    out = tmp_path / "capture"
+    said = []
+    report = run_poses(folder, out, PosesOptions(mapper="global"), progress=False, log=said.append)
+    assert any("global mapping" in m for m in said)
+    assert report.registered == [f"{c.name}.png" for c in cams]
+    err = camera_centre_error(centres_from_model(out / "sparse" / "0"), {f"{c.name}.png": c.center for c in cams})
+    assert err.n == len(cams) and err.max_fraction < MAX_CENTRE_ERROR, err.as_dict()
+    assert report.camera_model == "RADIAL"
+    assert report.camera_params[0] == pytest.approx(cams[0].K[0, 0], rel=0.02)
+    assert fingerprint(folder, PosesOptions(mapper="global")) != fingerprint(folder, PosesOptions())
+    with pytest.raises(ValueError, match="mapper must be one of"):
+        PosesOptions(mapper="glomap")
+
+
 def test_the_capture_loads_as_an_undistorted_colmap_capture(synthetic_frames, synthetic_capture):
     from trisplat.data import load_dataset
 

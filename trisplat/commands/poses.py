@@ -45,6 +45,8 @@ class PosesArgs:
     undistort: bool = True
     """write undistorted pinhole images (else the originals and the distorted model)"""
     seed: int = 0
+    mapper: Literal["incremental", "global"] = "incremental"
+    """COLMAP's incremental mapper, or its global mapper (GLOMAP: faster, and on bonsai steadier)"""
     force: bool = False
     """replace an earlier `trisplat poses` result in OUT"""
     quiet: bool = False
@@ -62,7 +64,7 @@ def main(argv: list[str]) -> int:
                         camera_mode=args.camera_mode, max_image_size=args.max_image_size,
                         max_features=args.max_features, min_registered=args.min_registered, video_rate=args.rate,
                         max_frames=args.max_frames, undistort=args.undistort, seed=args.seed, force=args.force,
-                        verbose=args.verbose)
+                        verbose=args.verbose, mapper=args.mapper)
     try:
         report = run_poses(args.source, args.out, opts, progress=not args.quiet)
     except FileExistsError as exc:

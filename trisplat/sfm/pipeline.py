@@ -38,6 +38,7 @@ from trisplat.sfm.verify import repair_registration
 
 MATCHERS = ("auto", "exhaustive", "sequential")
 CAMERA_MODES = ("single", "per-image")
+MAPPERS = ("incremental", "global")
 CAMERA_MODELS = ("auto", "SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
 # camera model 'auto': square pixels first (every phone and camera has them): RADIAL is OPENCV with fx = fy and no
 # tangential terms (f, cx, cy, k1, k2). OPENCV's free fy was poorly constrained on orbits at one height (4.6x the truth
@@ -72,6 +73,11 @@ class PosesOptions:
     undistort: write undistorted pinhole images (True) or copy the originals with the distorted model (the
         trisplat loader then undistorts at load time).
     seed: RANSAC and mapper seed (runs are repeatable on one machine).
+    mapper: 'incremental' (COLMAP's incremental mapper, one image at a time) or 'global' (COLMAP's global mapper,
+        GLOMAP: all rotations, then all positions, then bundle adjustment). On bonsai's 168 photos the incremental
+        mapper's multi-threaded result differed between two machines (f 827.7 px at 0.35 px, then 727 px at
+        0.80 px); the global mapper, on the second machine's matches, found 827.3 px at 0.40 px in a quarter of the
+        time (docs/benchmarks.md).
     """
 
     matcher: str = "auto"
@@ -89,8 +95,11 @@ class PosesOptions:
     seed: int = 0
     force: bool = False
     verbose: bool = False
+    mapper: str = "incremental"
 
     def __post_init__(self) -> None:
+        if self.mapper not in MAPPERS:
+            raise ValueError(f"mapper must be one of {MAPPERS}, got {self.mapper!r}")
         if self.matcher not in MATCHERS:
             raise ValueError(f"matcher must be one of {MATCHERS}, got {self.matcher!r}")
         if self.camera_mode not in CAMERA_MODES:
@@ -279,9 +288,21 @@ def _verified(db: Path, id_to_name: dict[int, str]) -> tuple[int, dict[str, int]
     return n, per_image
 
 
-def _map(db: Path, image_dir: Path, work: Path, n_images: int, seed: int, progress: bool):
+def _map(db: Path, image_dir: Path, work: Path, n_images: int, seed: int, progress: bool, mapper: str = "incremental"):
     import pycolmap
 
+    if mapper == "global":
+        tmp = work / "mapper"
+        if tmp.exists():
+            shutil.rmtree(tmp)
+        tmp.mkdir(parents=True)
+        gopts = pycolmap.GlobalPipelineOptions()
+        gopts.random_seed = seed
+        try:
+            models = pycolmap.global_mapping(str(db), str(image_dir), str(tmp), options=gopts)
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
+        return list(models.values()) if isinstance(models, dict) else list(models)
     opts = pycolmap.IncrementalPipelineOptions()
     opts.random_seed = seed
     opts.mapper.random_seed = seed
@@ -467,8 +488,8 @@ def run_poses(source: str | Path, out: str | Path, options: PosesOptions | None 
         times["matching"] = time.perf_counter() - t
 
         needed = max(MIN_IMAGES, math.ceil(opts.min_registered * len(names)))
-        t = head("incremental mapping")
-        models = _map(db, image_dir, work, len(names), opts.seed, progress)
+        t = head(f"{opts.mapper} mapping")
+        models = _map(db, image_dir, work, len(names), opts.seed, progress, opts.mapper)
         if opts.camera_model == "auto":
             registered_first = max((r.num_reg_images() for r in models), default=0)
             if registered_first < needed:
@@ -477,7 +498,7 @@ def run_poses(source: str | Path, out: str | Path, options: PosesOptions | None 
                 say(f"      {note}")
                 warnings.append(note)
                 _set_camera_model(db, AUTO_FALLBACK)
-                fallback = _map(db, image_dir, work, len(names), opts.seed, progress)
+                fallback = _map(db, image_dir, work, len(names), opts.seed, progress, opts.mapper)
                 if max((r.num_reg_images() for r in fallback), default=0) > registered_first:
                     models = fallback
         times["mapping"] = time.perf_counter() - t
