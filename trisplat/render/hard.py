@@ -12,6 +12,7 @@ from numba import njit, prange
 
 from trisplat.io.colour import linear_to_srgb_torch, srgb_to_linear_torch
 from trisplat.render.inputs import check_supersample, validate
+from trisplat.render.rasterize import camera_center
 from trisplat.render.types import RenderOutput, downsample, stack_views
 from trisplat.scene.sh import eval_sh
 
@@ -305,10 +306,7 @@ def _hard_linear_light(vi, near: float, perspective_correct: bool, ss: int, back
     outs = []
     for b in range(vi.world_to_camera.shape[0]):
         w2c = vi.world_to_camera[b]
-        col = vi.colors
-        if col.ndim == 3:
-            R, t = w2c[:3, :3], w2c[:3, 3]
-            col = eval_sh(col, vi.positions - (-(R.T @ t)))
+        col = vi.colors if vi.colors.ndim == 2 else eval_sh(vi.colors, vi.positions - camera_center(w2c))
         out = rasterize_hard(vi.positions, vi.faces, srgb_to_linear_torch(col), w2c, vi.K[b], vi.width, vi.height,
                              srgb_to_linear_torch(vi.background), near, perspective_correct, ss, backend)
         outs.append(dataclasses.replace(out, rgb=linear_to_srgb_torch(out.rgb)))

@@ -289,44 +289,39 @@ def _verified(db: Path, id_to_name: dict[int, str]) -> tuple[int, dict[str, int]
 
 
 def _map(db: Path, image_dir: Path, work: Path, n_images: int, seed: int, progress: bool, mapper: str = "incremental"):
+    """The reconstructions COLMAP's `mapper` ('incremental' or 'global', PosesOptions.mapper) makes of the matches."""
     import pycolmap
 
-    if mapper == "global":
-        tmp = work / "mapper"
-        if tmp.exists():
-            shutil.rmtree(tmp)
-        tmp.mkdir(parents=True)
-        gopts = pycolmap.GlobalPipelineOptions()
-        gopts.random_seed = seed
-        try:
-            models = pycolmap.global_mapping(str(db), str(image_dir), str(tmp), options=gopts)
-        finally:
-            shutil.rmtree(tmp, ignore_errors=True)
-        return list(models.values()) if isinstance(models, dict) else list(models)
-    opts = pycolmap.IncrementalPipelineOptions()
-    opts.random_seed = seed
-    opts.mapper.random_seed = seed
-    opts.triangulation.random_seed = seed
     tmp = work / "mapper"
     if tmp.exists():
         shutil.rmtree(tmp)
     tmp.mkdir(parents=True)
-    bar = _bar(n_images, "mapping", "img", progress)
-
-    def on_pair():
-        bar.update(2)
-
-    def on_next():
-        if bar.n < bar.total:
-            bar.update(1)
-
     try:
-        models = pycolmap.incremental_mapping(str(db), str(image_dir), str(tmp), options=opts,
-                                              initial_image_pair_callback=on_pair, next_image_callback=on_next)
+        if mapper == "global":
+            gopts = pycolmap.GlobalPipelineOptions()
+            gopts.random_seed = seed
+            return list(pycolmap.global_mapping(str(db), str(image_dir), str(tmp), options=gopts).values())
+        opts = pycolmap.IncrementalPipelineOptions()
+        opts.random_seed = seed
+        opts.mapper.random_seed = seed
+        opts.triangulation.random_seed = seed
+        bar = _bar(n_images, "mapping", "img", progress)
+
+        def on_pair():
+            bar.update(2)
+
+        def on_next():
+            if bar.n < bar.total:
+                bar.update(1)
+
+        try:
+            models = pycolmap.incremental_mapping(str(db), str(image_dir), str(tmp), options=opts,
+                                                  initial_image_pair_callback=on_pair, next_image_callback=on_next)
+        finally:
+            bar.close()
+        return list(models.values())
     finally:
-        bar.close()
-    shutil.rmtree(tmp, ignore_errors=True)
-    return list(models.values())
+        shutil.rmtree(tmp, ignore_errors=True)
 
 
 def _set_camera_model(db: Path, model: str) -> None:
