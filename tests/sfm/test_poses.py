@@ -36,29 +36,43 @@ def test_photos_register_and_cameras_match_the_truth(synthetic_frames, synthetic
     assert sorted(p.name for p in folder.iterdir()) == names
 
 
-def test_the_global_mapper_registers_the_photos_where_the_cameras_were(synthetic_frames, tmp_path, monkeypatch):
-    """mapper='global' (COLMAP's global mapper) instead of the incremental one: every photo registered, camera
-    centres and focal length as the renderer's; the mapper is part of the cache fingerprint; a bad name is refused."""
+def test_the_global_mapper_is_the_default_and_the_incremental_one_maps_when_it_registers_too_few(
+        synthetic_frames, synthetic_capture, tmp_path, monkeypatch):
+    """The default capture (synthetic_capture) came from COLMAP's global mapper alone; when the global mapper
+    registers fewer than min_registered of the photos, the incremental mapper maps the same matches again and says so.
+    The mapper is part of the cache fingerprint; a bad name is refused."""
     from trisplat.sfm import PosesOptions
     from trisplat.sfm.cache import fingerprint
 
     import pycolmap
 
-    def no_incremental(*args, **kwargs):
-        raise AssertionError("the incremental mapper ran")
+    report, _ = synthetic_capture
+    assert PosesOptions().mapper == "global"
+    assert not any("incremental" in w for w in report.warnings), report.warnings
+    calls = []
+    real_incremental = pycolmap.incremental_mapping
 
-    monkeypatch.setattr(pycolmap, "incremental_mapping", no_incremental)
+    def no_model(*args, **kwargs):
+        calls.append("global")
+        return {}
+
+    def incremental(*args, **kwargs):
+        calls.append("incremental")
+        return real_incremental(*args, **kwargs)
+
+    monkeypatch.setattr(pycolmap, "global_mapping", no_model)
+    monkeypatch.setattr(pycolmap, "incremental_mapping", incremental)
     folder, cams = synthetic_frames
     out = tmp_path / "capture"
     said = []
-    report = run_poses(folder, out, PosesOptions(mapper="global"), progress=False, log=said.append)
+    report = run_poses(folder, out, PosesOptions(camera_model="RADIAL"), progress=False, log=said.append)
+    assert calls == ["global", "incremental"]
+    assert any("the global mapper registered 0 of" in w and "incremental" in w for w in report.warnings)
     assert any("global mapping" in m for m in said)
     assert report.registered == [f"{c.name}.png" for c in cams]
     err = camera_centre_error(centres_from_model(out / "sparse" / "0"), {f"{c.name}.png": c.center for c in cams})
     assert err.n == len(cams) and err.max_fraction < MAX_CENTRE_ERROR, err.as_dict()
-    assert report.camera_model == "RADIAL"
-    assert report.camera_params[0] == pytest.approx(cams[0].K[0, 0], rel=0.02)
-    assert fingerprint(folder, PosesOptions(mapper="global")) != fingerprint(folder, PosesOptions())
+    assert fingerprint(folder, PosesOptions(mapper="incremental")) != fingerprint(folder, PosesOptions())
     with pytest.raises(ValueError, match="mapper must be one of"):
         PosesOptions(mapper="glomap")
 

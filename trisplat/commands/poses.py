@@ -14,7 +14,7 @@ from trisplat.commands.style import CLI_STYLE, flowing_help, help_description
 @flowing_help
 @dataclass
 class PosesArgs:
-    """Estimate camera poses for a folder of photos or a video (SIFT, matching, incremental mapping, undistortion)
+    """Estimate camera poses for a folder of photos or a video (SIFT, matching, global mapping, undistortion)
     and write an ordinary COLMAP capture (OUT/images, OUT/sparse/0) that `trisplat train OUT` reads."""
 
     source: tyro.conf.Positional[Path]
@@ -45,8 +45,9 @@ class PosesArgs:
     undistort: bool = True
     """write undistorted pinhole images (else the originals and the distorted model)"""
     seed: int = 0
-    mapper: Literal["incremental", "global"] = "incremental"
-    """COLMAP's incremental mapper, or its global mapper (GLOMAP: faster, and on bonsai steadier)"""
+    mapper: Literal["global", "incremental"] = "global"
+    """COLMAP's global mapper (GLOMAP; the incremental one maps again when it registers too few), or its incremental
+    mapper (slower, and on bonsai's photos its result changed between machines)"""
     force: bool = False
     """replace an earlier `trisplat poses` result in OUT"""
     quiet: bool = False

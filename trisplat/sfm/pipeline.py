@@ -1,8 +1,9 @@
-"""run_poses: photos or a video -> a COLMAP capture folder (images/, sparse/0) by incremental SfM with pycolmap.
+"""run_poses: photos or a video -> a COLMAP capture folder (images/, sparse/0) by structure from motion with pycolmap.
 
 Stages (each with progress): frames (video only), input check, SIFT features, pair selection and matching with
-geometric verification, incremental mapping, the registration check (trisplat.sfm.verify: photos placed where their
-own matches disagree are registered again), undistortion to pinhole, report. Layout of OUT:
+geometric verification, global mapping (or incremental: PosesOptions.mapper), the registration check
+(trisplat.sfm.verify: photos placed where their own matches disagree are registered again), undistortion to pinhole,
+report. Layout of OUT:
 
   OUT/images/             undistorted images of the registered views (what `trisplat train` reads)
   OUT/sparse/0/           the PINHOLE COLMAP model of those images (cameras, images, points3D .bin)
@@ -73,11 +74,12 @@ class PosesOptions:
     undistort: write undistorted pinhole images (True) or copy the originals with the distorted model (the
         trisplat loader then undistorts at load time).
     seed: RANSAC and mapper seed (runs are repeatable on one machine).
-    mapper: 'incremental' (COLMAP's incremental mapper, one image at a time) or 'global' (COLMAP's global mapper,
-        GLOMAP: all rotations, then all positions, then bundle adjustment). On bonsai's 168 photos the incremental
-        mapper's multi-threaded result differed between two machines (f 827.7 px at 0.35 px, then 727 px at
-        0.80 px); the global mapper, on the second machine's matches, found 827.3 px at 0.40 px in a quarter of the
-        time (docs/benchmarks.md).
+    mapper: 'global' (the default: COLMAP's global mapper, GLOMAP: all rotations, then all positions, then bundle
+        adjustment; when it registers fewer than `min_registered` of the images, the incremental mapper maps the same
+        matches again) or 'incremental' (COLMAP's incremental mapper, one image at a time). On bonsai's 168 photos
+        the incremental mapper's multi-threaded result differed between two machines (f 827.7 px at 0.35 px, then
+        727 px at 0.80 px with 10 mirror registrations); the global mapper, on the second machine's matches, found
+        827.3 px at 0.40 px with 168 of 168 in half the time (docs/benchmarks.md).
     """
 
     matcher: str = "auto"
@@ -95,7 +97,7 @@ class PosesOptions:
     seed: int = 0
     force: bool = False
     verbose: bool = False
-    mapper: str = "incremental"
+    mapper: str = "global"
 
     def __post_init__(self) -> None:
         if self.mapper not in MAPPERS:
@@ -496,6 +498,16 @@ def run_poses(source: str | Path, out: str | Path, options: PosesOptions | None 
                 fallback = _map(db, image_dir, work, len(names), opts.seed, progress, opts.mapper)
                 if max((r.num_reg_images() for r in fallback), default=0) > registered_first:
                     models = fallback
+        if opts.mapper == "global":
+            registered_global = max((r.num_reg_images() for r in models), default=0)
+            if registered_global < needed:
+                note = (f"the global mapper registered {registered_global} of {len(names)} images (fewer than "
+                        f"{needed}); mapped again with the incremental mapper")
+                say(f"      {note}")
+                warnings.append(note)
+                incremental = _map(db, image_dir, work, len(names), opts.seed, progress, "incremental")
+                if max((r.num_reg_images() for r in incremental), default=0) > registered_global:
+                    models = incremental
         times["mapping"] = time.perf_counter() - t
         if not models:
             raise _failure(0, names, set(), feats["features"], per_image, needed, source, work)
