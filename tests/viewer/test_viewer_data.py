@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import json
 import urllib.error
 import urllib.request
@@ -88,6 +89,43 @@ def test_server_routes_and_reports():
         )
         urllib.request.urlopen(req).read()
         assert server.errors() == [{"kind": "error", "message": "boom"}]
+    finally:
+        server.shutdown()
+        server.server_close()
+
+
+def test_the_hold_image_is_answered_only_once_the_page_is_ready():
+    """/api/hold (the image a ?hold=1 page inserts, so headless Chromium's load event and virtual time wait for the
+    mesh) stays unanswered until the page reports 'ready' (or an error), then answers a 1x1 GIF."""
+    import threading
+
+    from PIL import Image
+
+    box = trimesh.creation.box()
+    server = ViewerServer(ViewerData(box.vertices, box.faces, np.full((8, 3), 0.5)), port=0)
+    server.start_background()
+    got = {}
+
+    def fetch_hold():
+        with urllib.request.urlopen(server.url + "api/hold", timeout=30) as r:
+            got["type"], got["body"] = r.headers["Content-Type"], r.read()
+
+    try:
+        waiter = threading.Thread(target=fetch_hold)
+        waiter.start()
+        waiter.join(1.0)
+        assert waiter.is_alive() and not got  # no report yet: held
+        req = urllib.request.Request(server.url + "api/report", data=b'{"kind": "layout"}', method="POST")
+        urllib.request.urlopen(req).read()
+        waiter.join(0.5)
+        assert waiter.is_alive()  # a layout report is not 'ready'
+        req = urllib.request.Request(server.url + "api/report", data=b'{"kind": "ready"}', method="POST")
+        urllib.request.urlopen(req).read()
+        waiter.join(10.0)
+        assert not waiter.is_alive() and got["type"] == "image/gif"
+        assert Image.open(io.BytesIO(got["body"])).size == (1, 1)
+        with urllib.request.urlopen(server.url + "api/hold", timeout=5) as r:  # once ready, at once
+            assert r.read() == got["body"]
     finally:
         server.shutdown()
         server.server_close()

@@ -39,7 +39,7 @@ def screenshot(data: ViewerData, query: str, size: tuple[int, int], timeout_s: f
             shot = Path(tmp) / "shot.png"
             proc = subprocess.run(
                 [chromium, *CHROMIUM_FLAGS, f"--user-data-dir={tmp}/profile", f"--window-size={size[0]},{size[1]}",
-                 f"--screenshot={shot}", server.url + "?" + query],
+                 f"--screenshot={shot}", server.url + "?hold=1&" + query],
                 capture_output=True, text=True, timeout=timeout_s)
             if not shot.is_file():
                 raise RuntimeError(f"chromium wrote no screenshot (rc {proc.returncode}): {proc.stderr[-2000:]}")

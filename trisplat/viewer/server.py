@@ -15,6 +15,9 @@ from trisplat.viewer.data import ViewerData
 
 STATIC_DIR = Path(__file__).resolve().parent / "static"
 MAX_REPORT_BYTES = 64 * 1024  # the page's error/ready reports are small JSON objects
+HOLD_TIMEOUT_S = 300.0  # /api/hold answers after the page's first 'ready' or 'error' report, or after this
+# a 1x1 transparent GIF: /api/hold's answer
+PIXEL_GIF = bytes.fromhex("47494638396101000100800000000000ffffff21f90401000000002c00000000010001000002024401003b")
 
 
 class ViewerServer(ThreadingHTTPServer):
@@ -42,11 +45,13 @@ class ViewerServer(ThreadingHTTPServer):
     def errors(self) -> list[dict]:
         return [r for r in self.reports if r.get("kind") == "error"]
 
-    def wait_for_report(self, kind: str, timeout_s: float) -> dict | None:
-        """Block until the page posts a report of `kind` (or timeout); returns it or None."""
+    def wait_for_report(self, kind: str | tuple[str, ...], timeout_s: float) -> dict | None:
+        """Block until the page posts a report of `kind` (one kind or a tuple of kinds; or timeout); returns the first
+        such report or None."""
+        kinds = (kind,) if isinstance(kind, str) else tuple(kind)
         with self.reports_changed:
-            self.reports_changed.wait_for(lambda: any(r.get("kind") == kind for r in self.reports), timeout_s)
-        return next((r for r in self.reports if r.get("kind") == kind), None)
+            self.reports_changed.wait_for(lambda: any(r.get("kind") in kinds for r in self.reports), timeout_s)
+        return next((r for r in self.reports if r.get("kind") in kinds), None)
 
     def start_background(self) -> threading.Thread:
         t = threading.Thread(target=self.serve_forever, name="trisplat-viewer", daemon=True)
@@ -94,6 +99,9 @@ class _Handler(BaseHTTPRequestHandler):
             except ValueError as exc:
                 return self._send(str(exc).encode(), "text/plain", HTTPStatus.NOT_FOUND)
             return self._send(body, "image/png")
+        if path == "/api/hold":
+            self.server.wait_for_report(("ready", "error"), HOLD_TIMEOUT_S)
+            return self._send(PIXEL_GIF, "image/gif")
         if path == "/favicon.ico":
             return self._send(b"", "image/x-icon", HTTPStatus.NO_CONTENT)
         self._send(b"not found", "text/plain", HTTPStatus.NOT_FOUND)

@@ -14,3 +14,8 @@
   window.addEventListener('error', (e) => report('error', (e.message || 'error') + ' at ' + (e.filename || '') + ':' + (e.lineno || '')));
   window.addEventListener('unhandledrejection', (e) => report('error', 'unhandled rejection: ' + (e.reason && e.reason.stack || e.reason)));
 })();
+// ?hold=1 (headless screenshots): an image the server answers only once the page has reported 'ready' or an error,
+// so the page's load event, and headless Chromium's virtual time, wait for the mesh however long it takes to load.
+if (new URLSearchParams(window.location.search).get('hold') === '1') {
+  document.write('<img src="/api/hold" alt="" style="display:none">');
+}
