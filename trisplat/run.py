@@ -61,12 +61,16 @@ class Run:
         return load_scene_from_run(self)
 
     def load_scene_data(self, **overrides):
-        """The capture, loaded with the options the run was trained with."""
+        """The capture, loaded with the options the run was trained with, with the intrinsics the run refined
+        (RUN/intrinsics.json, trisplat.train.intrinsics) when it refined them."""
         from trisplat.data import load_dataset
+        from trisplat.train.intrinsics import apply_saved
 
         opts = dict(self.config.get("data_options", {}))
         opts.update(overrides)
-        return load_dataset(self.data_path, **opts)
+        data = load_dataset(self.data_path, **opts)
+        apply_saved(self.path, data)
+        return data
 
 
 def open_run(path: str | Path) -> Run:

@@ -384,6 +384,11 @@ def final_lines(m: dict, wall_s: float, run_dir) -> list[str]:
              if m.get("file_psnr") is not None else f"test PSNR {m['psnr']:.2f} dB (hard)")
     lines = [f"{what} in {wall_s / 60:.1f} min: {score}, SSIM {m['ssim']:.3f}{lp}, {m['faces']} faces, "
              f"{m['vertices']} vertices ({shape}{far}{cov}) -> {run_dir}"]
+    for g in (m.get("intrinsics") or {}).get("groups", []):
+        dx, dy = g["principal_point_shift_px"]
+        lines.append(f"  intrinsics refined ({g['cameras']} cameras): focal length {g['fx_before']:.1f} -> "
+                     f"{g['fx_after']:.1f} px ({g['focal_change_percent']:+.2f}%), principal point moved by "
+                     f"({dx:+.2f}, {dy:+.2f}) px (RUN/intrinsics.json)")
     lines += [f"  problem: {p}" for p in health["problems"]]
     lines += [f"  warning: {w}" for w in health.get("warnings", [])]
     lines += [f"  recovered: {note}" for note in health.get("recoveries", [])]

@@ -127,6 +127,19 @@ class TrainConfig:
     lr_exposure: float = 5e-3
     """Adam learning rate of the per-photo colour corrections."""
 
+    # -- the camera's intrinsics (trisplat.train.intrinsics)
+    refine_intrinsics: Literal["auto", "on", "off"] = "off"
+    """Refine focal length and principal point through the renderer (one set per group of cameras with equal
+    intrinsics: 3 numbers for a one-camera capture); evaluation, the switch, texturing and file scoring then use the
+    refined K (kept in RUN/intrinsics.json). auto: on for captures without alpha (real photos). Off by default: not
+    yet measured on the bench scenes (docs/benchmarks.md)."""
+    lr_focal: float = 2e-5
+    """Adam learning rate of the focal length's log scale (per step, times the position learning rate's decay)."""
+    lr_principal_point: float = 2e-3
+    """Adam learning rate of the principal point's shift, pixels (per step, times the same decay)."""
+    intrinsics_from: float = 0.1
+    """Progress (0-1) from which the intrinsics are refined (the first triangles are too rough to say)."""
+
     # -- pruning (of the soup; none after the switch to a connected surface)
     prune_from: float = 4_000 / PAPER_STEPS
     """Progress (0-1) of the first pruning event: faces whose min vertex opacity or max blending weight is at or

@@ -131,6 +131,12 @@ class Trainer:
             from trisplat.train.exposure import Exposure
 
             self.exposure = Exposure(len(data.cameras), cfg.lr_exposure, train_indices=data.train_indices)
+        self.intrinsics = None  # refined focal length and principal point (trisplat.train.intrinsics), when on
+        if cfg.refine_intrinsics == "on" or (cfg.refine_intrinsics == "auto" and len(data.train_indices)
+                                             and not self.has_alpha):
+            from trisplat.train.intrinsics import Intrinsics
+
+            self.intrinsics = Intrinsics(data.cameras, cfg.lr_focal, cfg.lr_principal_point)
         self.far_faces = 0  # after the switch of a capture without a content box: the far-field layer (the soup beyond
         # the inner box, then the background sphere), kept as the last rows of the face table (their vertices the last
         # vertex rows) behind the connected surface
@@ -177,6 +183,7 @@ class Trainer:
                 "switch_failure": self.switch_failure, "switched_p": self.switched_p,
                 "health": self.health.to_dict(),
                 "exposure": None if self.exposure is None else self.exposure.state(),
+                "intrinsics": None if self.intrinsics is None else self.intrinsics.state(),
                 "prune_off": self.prune_off, "switch_s": self.switch_s,
                 "normalization": np.asarray(self.data.normalization).tolist()}
 
@@ -204,6 +211,12 @@ class Trainer:
 
             self.exposure = Exposure(len(self.data.cameras), self.cfg.lr_exposure, ckpt["extra"]["exposure"],
                                      self.data.train_indices)
+        if self.intrinsics is not None and ckpt["extra"].get("intrinsics") is not None:
+            from trisplat.train.intrinsics import Intrinsics
+
+            self.intrinsics = Intrinsics(self.data.cameras, self.cfg.lr_focal, self.cfg.lr_principal_point,
+                                         ckpt["extra"]["intrinsics"])
+            self.sync_cameras()
         self.prune_off = bool(ckpt["extra"].get("prune_off", False))
         self.switch_s = float(ckpt["extra"].get("switch_s", 0.0))
         self._last_prune = int(ckpt["extra"].get("last_prune", -(10**9)))
@@ -222,7 +235,15 @@ class Trainer:
         tmp.write_text(json.dumps(state, indent=2))
         tmp.replace(self.run_dir / layout.STATE)
 
+    def sync_cameras(self) -> None:
+        """The refined intrinsics into the capture's cameras (what the switch, texturing and scoring read) and into
+        RUN/intrinsics.json (what `trisplat eval`, `export` and `view` load). No-op without refinement."""
+        if self.intrinsics is not None:
+            self.intrinsics.apply(self.data.cameras)
+            self.intrinsics.save(self.run_dir)
+
     def save_checkpoint(self) -> None:
+        self.sync_cameras()
         self._last_good = checkpoint_state(self.ts, self.step, self.clock.total, self.generator, self._extra())
         atomic_torch_save(self._last_good, self.run_dir / layout.CHECKPOINT)
         self._write_state(finished=False)
@@ -242,14 +263,20 @@ class Trainer:
 
     # ------------------------------------------------------------------------------------------------- rendering
     def render(self, cam_index: int, p: float, *, supersample: int = 1, sh_degree: int | None = None,
-               sigma: float | None = None):
+               sigma: float | None = None, refine_intrinsics: bool = False):
+        """refine_intrinsics: the render also carries the gradient of the view's intrinsics (training steps)."""
         cam = self.data.cameras[cam_index]
         deg = schedules.sh_degree(p, self.cfg) if sh_degree is None else sh_degree
         sh = self.ts.sh()[:, : num_sh_bases(deg)]
+        w2c = torch.as_tensor(cam.world_to_camera, dtype=torch.float32)
+        positions, K = self.ts.params["positions"], cam.K
+        if self.intrinsics is not None:
+            K = self.intrinsics.K(cam_index)
+            if refine_intrinsics:
+                positions = self.intrinsics.warp(positions, w2c, cam_index)
         return rasterize(
-            self.ts.params["positions"], self.ts.faces.to(torch.int32), sh, self.ts.opacities(),
-            self.sigma(p) if sigma is None else sigma,
-            torch.as_tensor(cam.world_to_camera, dtype=torch.float32), torch.as_tensor(cam.K, dtype=torch.float32),
+            positions, self.ts.faces.to(torch.int32), sh, self.ts.opacities(),
+            self.sigma(p) if sigma is None else sigma, w2c, torch.as_tensor(K, dtype=torch.float32),
             cam.width, cam.height, background=self.background, near=self.cfg.near, supersample=supersample,
             tile_size=self.cfg.tile_size, backend=self.cfg.backend, linear_light=self.ts.linear_light)
 
@@ -313,13 +340,14 @@ class Trainer:
             raise_floor(self.ts, new_floor)
         idx = view_for_step(step, self.data.train_indices, cfg.seed)
         cam = self.data.cameras[idx]
-        out = self.render(idx, p, supersample=schedules.supersample(p, cfg))
+        refine_K = self.intrinsics is not None and p >= cfg.intrinsics_from
+        out = self.render(idx, p, supersample=schedules.supersample(p, cfg), refine_intrinsics=refine_K)
         gt = self.gt(idx)
         rgb = out.rgb if self.exposure is None else self.exposure.apply(out.rgb, idx)
         loss = losses.photometric(rgb, gt, cfg.lambda_dssim, backend=cfg.backend)
         if p < cfg.opacity_penalty_until and cfg.lambda_opacity > 0:
             loss = loss + cfg.lambda_opacity * self.ts.opacities().mean()
-        K = torch.as_tensor(cam.K, dtype=torch.float32)
+        K = torch.as_tensor(cam.K if self.intrinsics is None else self.intrinsics.K(idx), dtype=torch.float32)
         if p >= cfg.normal_from and cfg.lambda_normal > 0:
             loss = loss + cfg.lambda_normal * losses.normal_consistency(out.normal, out.depth, out.alpha, K)
         if p >= cfg.vertex_depth_from and cfg.lambda_vertex_depth > 0:
@@ -335,6 +363,8 @@ class Trainer:
             self.ts.optimizer.zero_grad(set_to_none=True)
             if self.exposure is not None:
                 self.exposure.zero_grad()
+            if self.intrinsics is not None:
+                self.intrinsics.zero_grad()
             return {"ok": False}
         if self._refining(p):
             accumulate_colour_gradient(self.ts)
@@ -342,6 +372,10 @@ class Trainer:
         self.ts.optimizer.zero_grad(set_to_none=True)
         if self.exposure is not None:
             self.exposure.step(self.lr_scale)
+        if refine_K:
+            # the positions' decay (1 -> lr_position_final_ratio), so the intrinsics settle with the scene
+            decay = schedules.position_lr(p, cfg, 1.0) / cfg.lr_position if cfg.lr_position > 0 else 1.0
+            self.intrinsics.step(self.lr_scale * decay)
         if not self._params_finite():
             return {"ok": False}
         with torch.no_grad():
@@ -413,6 +447,7 @@ class Trainer:
         A switch that fails, whatever the error (a MemoryError, a Numba or trimesh error, no surface found), does not
         end hours of training: the soup is restored, the run goes on as a soup and says why (see _switch_failed).
         Only KeyboardInterrupt and SystemExit (not Exceptions) pass."""
+        self.sync_cameras()  # the fusion back-projects depth through the cameras
         soup = checkpoint_state(self.ts, self.step, self.clock.total, self.generator, self._extra())
         atomic_torch_save(soup, self.run_dir / layout.SOUP_CHECKPOINT)
         if self.switched_p is None:
@@ -767,6 +802,7 @@ class Trainer:
         from trisplat.train.outputs import write_outputs
 
         t0 = time.perf_counter()
+        self.sync_cameras()
         pruned = None
         if self.cfg.final_max_weight_pass and not self.connected:
             pruned = final_max_weight_prune(self.ts, self.final_max_weight(), self.cfg.final_max_weight)
@@ -823,6 +859,7 @@ class Trainer:
         extra = {"coverage": coverage, "switch_s": self.switch_s, "far_field_faces": self.far_faces,
                  "background_faces": self.background_faces,
                  "exposure": None if self.exposure is None else self.exposure.summary(),
+                 "intrinsics": None if self.intrinsics is None else self.intrinsics.summary(),
                  "history_faces_peak": self.health.peak_faces}
         if self.far_faces:
             from trisplat.mesh.stats import mesh_statistics
