@@ -177,3 +177,45 @@ def test_pose_graph_jacobian_matches_finite_differences():
     assert J.shape == num.shape
     np.testing.assert_allclose(J, num, rtol=1e-5, atol=1e-5 * np.abs(num).max())
     assert not np.allclose(J, 0)
+
+
+def test_frames_between_keyframes_follow_their_two_keyframes_corrections():
+    """apply_pose_correction: a frame between keyframes k and k + 1 gets the correction interpolated by its place in
+    between (translation linearly, rotation along the geodesic); one after the newest keyframe gets that keyframe's;
+    the keyframes land exactly on their new poses."""
+    from types import SimpleNamespace
+
+    from trisplat.slam.mapping import Keyframe
+
+    def pose(x, yaw_deg=0.0):
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_euler("z", yaw_deg, degrees=True).as_matrix()
+        T[0, 3] = x
+        return T
+
+    c2w = [pose(0.1 * n) for n in range(8)]  # frames 0..7 along x; keyframes at 0, 3 and 6
+    kf_ids = [0, 3, 6]
+    state = SimpleNamespace(c2w=[m.copy() for m in c2w], keyframe_ids=kf_ids, smap=SimpleNamespace(num_faces=0))
+    keyframes = [Keyframe(n, None, None, c2w[n].copy()) for n in kf_ids]
+    # corrections: none at keyframe 0, +3 cm in y and 6 degrees of yaw about the frame's centre at keyframe 3,
+    # +6 cm in y and 12 degrees at keyframe 6
+    new = []
+    for k, n in enumerate(kf_ids):
+        C = pose(0.0, 6.0 * k)
+        C[:3, 3] = c2w[n][:3, 3] - C[:3, :3] @ c2w[n][:3, 3] + np.array([0.0, 0.03 * k, 0.0])
+        new.append(C @ c2w[n])
+    system.apply_pose_correction(state, keyframes, new, move_map=False)
+    for k, n in enumerate(kf_ids):
+        np.testing.assert_allclose(state.c2w[n], new[k], atol=1e-12)
+        np.testing.assert_allclose(keyframes[k].c2w, new[k], atol=1e-12)
+    for n in (1, 2, 4, 5):
+        yaw = np.degrees(Rotation.from_matrix(state.c2w[n][:3, :3]).as_euler("zyx")[0])
+        assert yaw == pytest.approx(2.0 * n, abs=1e-9), n  # 6 degrees per 3 frames
+    # translation: the interpolated correction moves frame 1 a third of the way to keyframe 3's correction
+    C0, C1 = new[0] @ np.linalg.inv(c2w[0]), new[1] @ np.linalg.inv(c2w[3])
+    half = system.interpolate_correction(C0, C1, 1 / 3)
+    np.testing.assert_allclose(state.c2w[1], half @ c2w[1], atol=1e-12)
+    np.testing.assert_allclose(state.c2w[7], (new[2] @ np.linalg.inv(c2w[6])) @ c2w[7], atol=1e-12)
+    # the ends of the interpolation are the corrections themselves
+    np.testing.assert_allclose(system.interpolate_correction(C0, C1, 0.0), C0, atol=1e-12)
+    np.testing.assert_allclose(system.interpolate_correction(C0, C1, 1.0), C1, atol=1e-12)

@@ -219,17 +219,33 @@ def motion_guess(c2w: list[np.ndarray], lost: set[int]) -> np.ndarray:
     return prev @ c2w[-2] @ prev
 
 
+def interpolate_correction(a: np.ndarray, b: np.ndarray, t: float) -> np.ndarray:
+    """The rigid transform a fraction t in [0, 1] of the way from `a` to `b` (4x4): rotation along the geodesic
+    R_a exp(t log(R_a^T R_b)), translation linearly."""
+    from scipy.spatial.transform import Rotation
+
+    out = np.eye(4)
+    step = Rotation.from_matrix(a[:3, :3].T @ b[:3, :3]).as_rotvec()
+    out[:3, :3] = a[:3, :3] @ Rotation.from_rotvec(t * step).as_matrix()
+    out[:3, 3] = (1.0 - t) * a[:3, 3] + t * b[:3, 3]
+    return out
+
+
 def apply_pose_correction(state: SlamState, keyframes: list[Keyframe], new_kf_c2w: list[np.ndarray],
                           move_map: bool = True) -> float:
     """Move everything to the optimised keyframe poses: keyframe k's correction C_k = T_k' T_k^-1 (world frame) is
-    applied to each keyframe, to every frame from keyframe k up to the next one (its trajectory pose), and (move_map)
-    to the map's triangles spawned at keyframe k (their vertices). Returns the largest keyframe-centre move
-    (metres)."""
+    applied to each keyframe, to the frames between keyframes k and k + 1 interpolated between C_k and C_k+1 by
+    their place in between (rotation along the geodesic, translation linearly: the drift a frame carries lies between
+    its two keyframes'; frames after the newest keyframe get its correction), and (move_map) to the map's triangles
+    spawned at keyframe k (their vertices). Returns the largest keyframe-centre move (metres)."""
     corr = [new @ np.linalg.inv(kf.c2w) for new, kf in zip(new_kf_c2w, keyframes)]
     kf_frames = np.array(state.keyframe_ids)
     for n in range(len(state.c2w)):
         k = max(0, int(np.searchsorted(kf_frames, n, side="right")) - 1)
-        state.c2w[n] = corr[k] @ state.c2w[n]
+        C = corr[k]
+        if k + 1 < len(corr) and n > kf_frames[k]:
+            C = interpolate_correction(corr[k], corr[k + 1], (n - kf_frames[k]) / (kf_frames[k + 1] - kf_frames[k]))
+        state.c2w[n] = C @ state.c2w[n]
     moved = 0.0
     for kf, new in zip(keyframes, new_kf_c2w):
         moved = max(moved, float(np.linalg.norm(new[:3, 3] - kf.c2w[:3, 3])))
