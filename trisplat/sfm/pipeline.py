@@ -487,27 +487,27 @@ def run_poses(source: str | Path, out: str | Path, options: PosesOptions | None 
         needed = max(MIN_IMAGES, math.ceil(opts.min_registered * len(names)))
         t = head(f"{opts.mapper} mapping")
         models = _map(db, image_dir, work, len(names), opts.seed, progress, opts.mapper)
+
+        def map_again(models, first: str, then: str, again):
+            """`models`, or again()'s models when `models` register fewer than `needed` images and again()'s more."""
+            have = max((r.num_reg_images() for r in models), default=0)
+            if have >= needed:
+                return models
+            note = f"{first} registered {have} of {len(names)} images (fewer than {needed}); mapped again with {then}"
+            say(f"      {note}")
+            warnings.append(note)
+            other = again()
+            return other if max((r.num_reg_images() for r in other), default=0) > have else models
+
+        def fallback_camera():
+            _set_camera_model(db, AUTO_FALLBACK)
+            return _map(db, image_dir, work, len(names), opts.seed, progress, opts.mapper)
+
         if opts.camera_model == "auto":
-            registered_first = max((r.num_reg_images() for r in models), default=0)
-            if registered_first < needed:
-                note = (f"the {AUTO_FIRST} fit registered {registered_first} of {len(names)} images (fewer than "
-                        f"{needed}); mapped again with {AUTO_FALLBACK}")
-                say(f"      {note}")
-                warnings.append(note)
-                _set_camera_model(db, AUTO_FALLBACK)
-                fallback = _map(db, image_dir, work, len(names), opts.seed, progress, opts.mapper)
-                if max((r.num_reg_images() for r in fallback), default=0) > registered_first:
-                    models = fallback
+            models = map_again(models, f"the {AUTO_FIRST} fit", AUTO_FALLBACK, fallback_camera)
         if opts.mapper == "global":
-            registered_global = max((r.num_reg_images() for r in models), default=0)
-            if registered_global < needed:
-                note = (f"the global mapper registered {registered_global} of {len(names)} images (fewer than "
-                        f"{needed}); mapped again with the incremental mapper")
-                say(f"      {note}")
-                warnings.append(note)
-                incremental = _map(db, image_dir, work, len(names), opts.seed, progress, "incremental")
-                if max((r.num_reg_images() for r in incremental), default=0) > registered_global:
-                    models = incremental
+            models = map_again(models, "the global mapper", "the incremental mapper",
+                               lambda: _map(db, image_dir, work, len(names), opts.seed, progress, "incremental"))
         times["mapping"] = time.perf_counter() - t
         if not models:
             raise _failure(0, names, set(), feats["features"], per_image, needed, source, work)
