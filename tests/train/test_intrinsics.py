@@ -149,3 +149,11 @@ def test_training_refines_a_wrong_focal_length_and_the_run_keeps_it(tmp_path):
     np.testing.assert_allclose(data.cameras[3].K, tr.data.cameras[3].K, rtol=1e-6)
     resumed = _trainer(scene, tmp_path / "run", resume=True, **over)
     np.testing.assert_allclose(resumed.intrinsics.K(0), tr.intrinsics.K(0), rtol=1e-6)
+    # a rollback in the same process (its cameras already refined) restores the saved refinement on the capture's
+    # own K, not on the refined one
+    saved = torch.load(tmp_path / "run" / layout.CHECKPOINT, weights_only=True)
+    tr._restore(saved)
+    assert tr.intrinsics.base[0][0, 0] == pytest.approx(1.05 * true_f, rel=1e-9)
+    want = refined_K(tr.intrinsics.base[0], saved["extra"]["intrinsics"][0])
+    np.testing.assert_allclose(tr.data.cameras[5].K, want, rtol=1e-9)
+    np.testing.assert_allclose(tr.intrinsics.K(5), want, rtol=1e-9)

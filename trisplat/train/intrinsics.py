@@ -64,8 +64,7 @@ class Intrinsics:
         self.focal = torch.nn.Parameter(init[:, :1].clone())  # s: log of the focal length's scale
         self.shift = torch.nn.Parameter(init[:, 1:].clone())  # dx, dy: the principal point's shift, pixels
         self.lr = (float(lr_focal), float(lr_principal))
-        self.optimizer = torch.optim.Adam([{"params": [self.focal], "lr": self.lr[0]},
-                                           {"params": [self.shift], "lr": self.lr[1]}], eps=1e-15)
+        self.load_state(init)
 
     @property
     def params(self) -> torch.Tensor:
@@ -103,6 +102,17 @@ class Intrinsics:
 
     def state(self) -> torch.Tensor:
         return self.params.detach().clone()
+
+    def load_state(self, values) -> None:
+        """Set the parameters (a `state()`), keeping the base intrinsics; the optimiser starts afresh."""
+        values = torch.as_tensor(values).detach().float()
+        if values.shape != self.params.shape:
+            raise ValueError(f"intrinsics parameters must be {list(self.params.shape)}, got {list(values.shape)}")
+        with torch.no_grad():
+            self.focal.copy_(values[:, :1])
+            self.shift.copy_(values[:, 1:])
+        self.optimizer = torch.optim.Adam([{"params": [self.focal], "lr": self.lr[0]},
+                                           {"params": [self.shift], "lr": self.lr[1]}], eps=1e-15)
 
     def apply(self, cameras: list) -> None:
         """Write the refined K into `cameras` (a SceneData's list, same order), in place."""

@@ -212,10 +212,9 @@ class Trainer:
             self.exposure = Exposure(len(self.data.cameras), self.cfg.lr_exposure, ckpt["extra"]["exposure"],
                                      self.data.train_indices)
         if self.intrinsics is not None and ckpt["extra"].get("intrinsics") is not None:
-            from trisplat.train.intrinsics import Intrinsics
-
-            self.intrinsics = Intrinsics(self.data.cameras, self.cfg.lr_focal, self.cfg.lr_principal_point,
-                                         ckpt["extra"]["intrinsics"])
+            # into the existing refinement: its base K is the capture's own (a rollback in this process finds the
+            # cameras already refined, and must not refine them twice)
+            self.intrinsics.load_state(ckpt["extra"]["intrinsics"])
             self.sync_cameras()
         self.prune_off = bool(ckpt["extra"].get("prune_off", False))
         self.switch_s = float(ckpt["extra"].get("switch_s", 0.0))
