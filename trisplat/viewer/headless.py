@@ -37,10 +37,14 @@ def screenshot(data: ViewerData, query: str, size: tuple[int, int], timeout_s: f
     try:
         with tempfile.TemporaryDirectory(prefix="trisplat-chromium-") as tmp:
             shot = Path(tmp) / "shot.png"
-            proc = subprocess.run(
-                [chromium, *CHROMIUM_FLAGS, f"--user-data-dir={tmp}/profile", f"--window-size={size[0]},{size[1]}",
-                 f"--screenshot={shot}", server.url + "?hold=1&" + query],
-                capture_output=True, text=True, timeout=timeout_s)
+            try:
+                proc = subprocess.run(
+                    [chromium, *CHROMIUM_FLAGS, f"--user-data-dir={tmp}/profile",
+                     f"--window-size={size[0]},{size[1]}", f"--screenshot={shot}", server.url + "?hold=1&" + query],
+                    capture_output=True, text=True, timeout=timeout_s)
+            except subprocess.TimeoutExpired as exc:
+                raise RuntimeError(f"the viewer page did not report ready within {timeout_s:g} s (the screenshot "
+                                   f"waits for it); its reports: {server.reports[-5:]}") from exc
             if not shot.is_file():
                 raise RuntimeError(f"chromium wrote no screenshot (rc {proc.returncode}): {proc.stderr[-2000:]}")
             image = np.asarray(Image.open(shot).convert("RGB"))
