@@ -61,8 +61,8 @@ class Intrinsics:
         init = torch.zeros(n, 3) if values is None else torch.as_tensor(values).detach().clone().float()
         if init.shape != (n, 3):
             raise ValueError(f"intrinsics parameters must be [{n},3] for {n} camera group(s), got {tuple(init.shape)}")
-        self.focal = torch.nn.Parameter(init[:, :1].clone())  # s: log of the focal length's scale
-        self.shift = torch.nn.Parameter(init[:, 1:].clone())  # dx, dy: the principal point's shift, pixels
+        self.focal = torch.nn.Parameter(torch.zeros(n, 1))  # s: log of the focal length's scale
+        self.shift = torch.nn.Parameter(torch.zeros(n, 2))  # dx, dy: the principal point's shift, pixels
         self.lr = (float(lr_focal), float(lr_principal))
         self.load_state(init)
 
