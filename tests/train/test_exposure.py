@@ -66,3 +66,30 @@ def test_the_report_shows_problems_and_warnings(tmp_path):
     assert "not trustworthy" in text and "90.0%" in text
     assert "photo &lt;b&gt;x&lt;/b&gt; does not fit" in text  # escaped
     assert text.index("</h1>") < text.index("health-warnings") < text.index("<p>scores")
+
+
+def test_one_photo_per_step_moves_only_that_photos_correction_and_learns_the_gains():
+    """Training sees one photo per step. A step moves that photo's correction alone (every row then shifts by the
+    same gauge amount), and corrections learned from a photo every 20 steps, against a render that is still
+    changing, end close to the photos' real gains: with dense Adam the rows not seen kept moving on stale momentum
+    and ended far off."""
+    torch.manual_seed(0)
+    n = 20
+    scene = torch.rand(8, 8, 3) * 0.8 + 0.1
+    gains = 1 + 0.15 * torch.randn(n, 3)
+    gains = gains / gains.mean(0)  # mean 1: the scene is the common colour
+    e = Exposure(n, lr=0.01)
+    for step in range(4000):
+        i = step % n
+        render = scene + 0.02 * torch.randn_like(scene)  # the scene is being learned too: a noisy render
+        ((e.apply(render, i) - scene * gains[i]) ** 2).mean().backward()
+        e.step()
+    before = e.state()
+    ((e.apply(scene, 3) - scene * gains[3]) ** 2).mean().backward()
+    e.step()
+    moved = e.state() - before
+    others = torch.cat([moved[:3], moved[4:]])
+    torch.testing.assert_close(others, others[:1].expand_as(others), atol=1e-7, rtol=0)  # the gauge shift only
+    assert (moved[3] - moved[0]).abs().max() > 1e-3
+    learned = torch.stack([torch.diagonal(torch.eye(3) + e.state()[i, :9].reshape(3, 3)) for i in range(n)])
+    assert (learned - gains).abs().max() < 0.03

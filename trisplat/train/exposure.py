@@ -29,7 +29,13 @@ class Exposure:
             raise ValueError(f"exposure parameters must be [{n_images},{PARAMS_PER_IMAGE}], got {tuple(init.shape)}")
         self.params = torch.nn.Parameter(init)
         self.lr = float(lr)
-        self.optimizer = torch.optim.Adam([self.params], lr=self.lr, eps=1e-15)
+        # Lazy (sparse) Adam: a training step sees one photo, so only that photo's row has a gradient. Dense Adam
+        # would keep moving every other row on its stale momentum for ~10 steps after each visit, an overshoot of
+        # about ten times the step in whatever direction the last visit pointed: on bonsai (147 photos, each seen
+        # every ~147 steps) the final corrections fitted the final render worse than no correction at all (one
+        # training photo: 25.6 dB against the render, 20.8 with its correction). SparseAdam updates a row and its
+        # moments only when the row has a gradient.
+        self.optimizer = torch.optim.SparseAdam([self.params], lr=self.lr, eps=1e-15)
         self.train = torch.arange(n_images) if train_indices is None else torch.as_tensor(train_indices).long()
 
     def apply(self, rgb: torch.Tensor, index: int) -> torch.Tensor:
@@ -41,6 +47,11 @@ class Exposure:
     def step(self, scale: float = 1.0) -> None:
         for group in self.optimizer.param_groups:
             group["lr"] = self.lr * scale
+        grad = self.params.grad
+        if grad is None:
+            return
+        if not grad.is_sparse:  # the rows some photo's loss reached (sparse_dim 1: whole rows)
+            self.params.grad = grad.to_sparse(1)
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
         # the gauge: a colour change common to every photo belongs to the scene, not to the corrections (else the
