@@ -93,3 +93,61 @@ def test_one_photo_per_step_moves_only_that_photos_correction_and_learns_the_gai
     assert (moved[3] - moved[0]).abs().max() > 1e-3
     learned = torch.stack([torch.diagonal(torch.eye(3) + e.state()[i, :9].reshape(3, 3)) for i in range(n)])
     assert (learned - gains).abs().max() < 0.03
+
+
+def test_the_files_colours_are_fitted_to_the_photos_with_their_corrections_undone(tmp_path):
+    """Photos of a vertex-coloured sphere, each with its own exposure and white balance (brighter from one side,
+    darker and bluer from the other): with the learned corrections undone (scene_colour_photos) the fitted vertex
+    colours are the scene's; fitted to the photos as they are, each side takes the colour of the photos seeing it."""
+    import numpy as np
+    import trimesh
+
+    from tests.texture.test_texture_fit import PhotoData, coloured_scene
+    from tests.texture.test_vertex_colours import _cams, _photos
+    from trisplat.texture.asset import build_asset, file_psnr
+    from trisplat.train.exposure import scene_colour_photos, undo
+
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    rng = np.random.default_rng(0)
+    truth = rng.uniform(0.1, 0.7, (len(mesh.vertices), 3))
+    bg = (1.0, 1.0, 1.0)
+    cams = _cams(n_az=8, elevations=(-0.4, 0.2, 0.7), size=48)
+    clean = _photos(tmp_path, mesh, truth, cams, bg)
+    params = np.zeros((len(cams), PARAMS_PER_IMAGE))
+    for i, cam in enumerate(cams):
+        side = float(np.linalg.inv(cam.world_to_camera)[0, 3]) / 3.0  # -1..1: where the camera stands
+        params[i, [0, 4, 8]] = 0.25 * side * np.array([1.0, 0.8, 0.5])
+        params[i, 9:] = np.array([0.0, 0.0, -0.04 * side])
+    photos = []
+    for i, p in enumerate(clean):  # what each camera recorded: (I + A) scene + b
+        A = np.eye(3) + params[i, :9].reshape(3, 3)
+        photos.append((np.asarray(p, np.float64) @ A.T + params[i, 9:]).astype(np.float32))
+        np.testing.assert_allclose(undo(photos[-1], params[i]), p, atol=1e-5)
+    data = PhotoData(cams, bg, np.arange(len(cams)), photos)
+    model = np.clip(truth + rng.normal(0, 0.05, truth.shape), 0, 1).astype(np.float32)  # near the scene's colour
+    scene = coloured_scene(mesh.vertices, mesh.faces, model)
+    fixed = build_asset(scene, data, texture_size=0, supersample=2, photos=scene_colour_photos(data, params))
+    raw = build_asset(scene, data, texture_size=0, supersample=2)
+    # judged against the scene's own colours, in every view
+    scene_photos = PhotoData(cams, bg, np.arange(len(cams)), clean)
+    views = list(range(len(cams)))
+    score_fixed = file_psnr(fixed.positions, fixed.faces, fixed.colors, None, scene_photos, views, 2, 0.01)
+    score_raw = file_psnr(raw.positions, raw.faces, raw.colors, None, scene_photos, views, 2, 0.01)
+    score_model = file_psnr(fixed.positions, fixed.faces, model, None, scene_photos, views, 2, 0.01)
+    assert score_fixed > score_model + 2.0 and score_fixed > score_raw + 2.0, (score_fixed, score_raw, score_model)
+
+
+def test_the_run_keeps_its_corrections_and_a_malformed_file_is_named(tmp_path):
+    import numpy as np
+
+    from trisplat.train.exposure import FILE, load_saved, save
+
+    rows = np.random.default_rng(0).normal(0, 0.05, (4, PARAMS_PER_IMAGE))
+    assert load_saved(tmp_path, 4) is None  # a run that learned none
+    save(tmp_path, torch.as_tensor(rows))
+    np.testing.assert_allclose(load_saved(tmp_path, 4), rows)
+    with pytest.raises(ValueError, match=r"exposure\.json.*5 cameras"):
+        load_saved(tmp_path, 5)
+    (tmp_path / FILE).write_text("{not json")
+    with pytest.raises(ValueError, match=r"exposure\.json: malformed"):
+        load_saved(tmp_path, 4)
