@@ -7,11 +7,10 @@ import math
 from pathlib import Path
 
 import numpy as np
-from PIL import Image
-
 from trisplat.cameras import Camera
 from trisplat.synth.orbit import intrinsics, look_at
 from trisplat.synth.raycast import raycast_view
+from trisplat.synth.rgbd_room import write_sevenscenes_frame, write_sevenscenes_intrinsics
 from trisplat.synth.scenes import demo_mesh
 
 W, H, N = 160, 120, 14
@@ -38,12 +37,9 @@ def write_rgbd_sequence(root: Path, width: int = W, height: int = H, n: int = N,
     K = intrinsics(width, height, FOV_DEG)
     for k, w2c in enumerate(path_w2c(n) if path is None else path):
         v = raycast_view(mesh, Camera(w2c, K, width, height), background=(1.0, 1.0, 1.0))
-        Image.fromarray((v.rgba[..., :3] * 255 + 0.5).astype(np.uint8)).save(root / f"frame-{k:06d}.color.png")
-        Image.fromarray(np.round(v.depth * 1000).astype(np.uint16)).save(root / f"frame-{k:06d}.depth.png")
-        np.savetxt(root / f"frame-{k:06d}.pose.txt", np.linalg.inv(w2c))
-    Kint = K.copy()
-    Kint[:2, 2] -= 0.5  # the file is integer-centred (OpenCV), as 7-Scenes'
-    np.savetxt(root / "camera-intrinsics.txt", Kint)
+        write_sevenscenes_frame(root, k, (v.rgba[..., :3] * 255 + 0.5).astype(np.uint8),
+                                np.round(v.depth * 1000).astype(np.uint16), np.linalg.inv(w2c))
+    write_sevenscenes_intrinsics(root, K)
     return root
 
 

@@ -206,12 +206,21 @@ def render_rgbd_frame(mesh: trimesh.Trimesh, camera: Camera, frame: int, seed: i
     return np.round(np.clip(rgb, 0.0, 1.0) * 255.0).astype(np.uint8), mm, face
 
 
-def _write_frame(out: Path, k: int, rgb: np.ndarray, mm: np.ndarray, c2w: np.ndarray) -> None:
+def write_sevenscenes_frame(out: Path, k: int, rgb: np.ndarray, mm: np.ndarray, c2w: np.ndarray) -> None:
+    """Frame k in the 7-Scenes layout: rgb [H,W,3] uint8, depth mm [H,W] uint16 (0: no reading), c2w [4,4]."""
     from PIL import Image
 
     Image.fromarray(rgb, "RGB").save(out / f"frame-{k:06d}.color.png")
     Image.fromarray(mm).save(out / f"frame-{k:06d}.depth.png")
     np.savetxt(out / f"frame-{k:06d}.pose.txt", c2w)
+
+
+def write_sevenscenes_intrinsics(out: Path, K: np.ndarray) -> None:
+    """camera-intrinsics.txt from K [3,3] (pixel centres at +0.5): integer-centred, as 7-Scenes' (the reader adds
+    0.5 back)."""
+    K_file = np.asarray(K, np.float64).copy()
+    K_file[:2, 2] -= 0.5
+    np.savetxt(Path(out) / "camera-intrinsics.txt", K_file)
 
 
 _WORKER: dict = {}
@@ -224,7 +233,7 @@ def _worker_init(seed: int) -> None:
 
 def _render_and_write(out: Path, k: int, camera: Camera, c2w: np.ndarray, seed: int, sensor, color_samples: int):
     rgb, mm, face = render_rgbd_frame(_WORKER["mesh"], camera, k, seed, sensor, color_samples, _WORKER["isect"])
-    _write_frame(out, k, rgb, mm, c2w)
+    write_sevenscenes_frame(out, k, rgb, mm, c2w)
     return k, np.unique(face[face >= 0]), int((mm == 0).sum())
 
 
@@ -296,9 +305,7 @@ def write_rgbd_room(out_dir: str | Path, n_frames: int = 300, width: int = 320, 
                     bar.update(1)
     if bar is not None:
         bar.close()
-    K_file = K.copy()
-    K_file[:2, 2] -= 0.5  # integer-centred, as 7-Scenes' (the reader adds 0.5 back)
-    np.savetxt(out / "camera-intrinsics.txt", K_file)
+    write_sevenscenes_intrinsics(out, K)
     mesh.export(out / "gt_mesh.ply")
     seen_mesh = trimesh.Trimesh(mesh.vertices, mesh.faces[seen], process=False)
     seen_mesh.visual.vertex_colors = mesh.visual.vertex_colors
