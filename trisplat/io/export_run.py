@@ -86,13 +86,9 @@ def export_run(
     if meshes and (faces is not None or texture_size or fit_colours):
         from trisplat.texture.asset import build_asset
 
-        from trisplat.train.exposure import load_saved, scene_colour_photos
-
-        corrections = load_saved(run.path, len(data.cameras)) if data is not None else None
         asset = build_asset(scene, data, texture_size=int(texture_size), faces=faces,
                             supersample=int(run.config.get("eval_supersample", 2)),
-                            near=float(run.config.get("near", 0.01)), fit_colours=fit_colours,
-                            photos=None if corrections is None else scene_colour_photos(data, corrections))
+                            near=float(run.config.get("near", 0.01)), fit_colours=fit_colours)
         positions, fc, colors, texture = asset.positions, asset.faces, asset.colors, asset.texture
         from trisplat.texture.asset import choice_message
 

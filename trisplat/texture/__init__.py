@@ -32,22 +32,20 @@ class TextureReport:
 
 
 def texture_mesh(positions: np.ndarray, faces: np.ndarray, colors, data, size: int = DEFAULT_TEXTURE_SIZE,
-                 supersample: int = 2, near: float = 0.01, indices=None, also: Sequence = (), photos=None
+                 supersample: int = 2, near: float = 0.01, indices=None, also: Sequence = ()
                  ) -> tuple[TextureMap, TextureReport]:
     """Atlas + least-squares texture of an opaque mesh over the training views of `data` (a SceneData; the mesh
     in its normalised frame). colors [V,3]: sRGB vertex colours for texels no photo sees, or a function returning
     them, called once every view has been rasterised. indices: the views to fit (default: the training split).
     also: more row accumulators (add(samples, photo), e.g. trisplat.texture.vertex_colours.VertexRows) fed the
-    same rasterised views, so a vertex-colour fit whose result `colors` returns costs no second pass. photos:
-    index -> the photo to fit (default data.load_image; e.g. trisplat.train.exposure.scene_colour_photos)."""
+    same rasterised views, so a vertex-colour fit whose result `colors` returns costs no second pass."""
     t0 = time.perf_counter()
     atlas = build_atlas(positions, faces, size)
     t_atlas = time.perf_counter() - t0
     idx = [int(i) for i in (data.train_indices if indices is None else indices)]
     t1 = time.perf_counter()
     rows = TexelRows(faces, atlas, data.background)
-    load = data.load_image if photos is None else photos
-    views = ((data.cameras[i], np.asarray(load(i), np.float32)) for i in idx)
+    views = ((data.cameras[i], np.asarray(data.load_image(i), np.float32)) for i in idx)
     for ss, photo in view_samples(positions, rows.faces, views, supersample, near):
         for acc in (rows, *also):
             acc.add(ss, photo)

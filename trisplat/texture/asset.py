@@ -55,17 +55,14 @@ def photo_texture_cap(data) -> int:
 
 
 def build_asset(scene, data, texture_size: int = 2048, faces: int | None = None, supersample: int = 2,
-                near: float = 0.01, fit_colours: bool = True, photos=None) -> MeshAsset:
+                near: float = 0.01, fit_colours: bool = True) -> MeshAsset:
     """The mesh files' content for a TriangleScene trained on `data` (SceneData): vertex colours, decimated to
     `faces` when given, textured over the training views when texture_size > 0.
 
     The vertex colours are fitted to the training photos as a glTF viewer shows them (fit_colours; trisplat.texture.
     vertex_colours), starting from and pulled towards the model's SH band 0; the texture is fitted with them as its
     prior. With enough training views (holdout_views) some are held out of both fits, and the file gets whichever
-    scores best on them: the texture, the fitted vertex colours or the model's band-0 colours (choose_colours).
-    photos: index -> the training photo to fit and judge by (default data.load_image); a run that learned per-photo
-    colour corrections passes its photos with them undone (trisplat.train.exposure.scene_colour_photos), so the
-    colours are fitted to the scene's common colour, as the model is."""
+    scores best on them: the texture, the fitted vertex colours or the model's band-0 colours (choose_colours)."""
     from trisplat.scene.sh import sh_dc_to_rgb
     from trisplat.texture import texture_mesh
     from trisplat.texture.fit import NoViewSeesMesh
@@ -79,7 +76,6 @@ def build_asset(scene, data, texture_size: int = 2048, faces: int | None = None,
     asset = MeshAsset(positions=positions, faces=fc, colors=colors)
     if not len(fc) or not (texture_size or fit_colours):
         return asset
-    load = data.load_image if photos is None else photos
     train = [int(i) for i in data.train_indices]
     held = holdout_views(train)
     fit = [i for i in train if i not in set(held)]
@@ -100,13 +96,13 @@ def build_asset(scene, data, texture_size: int = 2048, faces: int | None = None,
 
         try:
             asset.texture, rep = texture_mesh(positions, fc, fitted_colours, data, size, supersample, near,
-                                              indices=fit, also=(vrows,), photos=load)
+                                              indices=fit, also=(vrows,))
             asset.texture_report = rep.to_dict()
         except NoViewSeesMesh as exc:  # no fitting view sees the mesh: no texture, and why
             asset.texture_report = {"chosen": "vertex colours", "reason": str(exc)}
         fit_colours = asset.colour_report.get("chosen") != "model"
     elif fit_colours:
-        views = ((data.cameras[i], np.asarray(load(i), np.float32)) for i in fit)
+        views = ((data.cameras[i], np.asarray(data.load_image(i), np.float32)) for i in fit)
         try:
             asset.colors, stats = fit_vertex_colors(positions, fc, views, data.background, model_colors,
                                                     supersample, near)
@@ -116,13 +112,12 @@ def build_asset(scene, data, texture_size: int = 2048, faces: int | None = None,
             fit_colours = False
     if size and asset.texture_report is None:
         try:
-            asset.texture, rep = texture_mesh(positions, fc, asset.colors, data, size, supersample, near, indices=fit,
-                                              photos=load)
+            asset.texture, rep = texture_mesh(positions, fc, asset.colors, data, size, supersample, near, indices=fit)
             asset.texture_report = rep.to_dict()
         except NoViewSeesMesh as exc:
             asset.texture_report = {"chosen": "vertex colours", "reason": str(exc)}
     if held and (fit_colours or asset.texture is not None):
-        choose_colours(asset, data, held, supersample, near, model_colors if fit_colours else None, photos=load)
+        choose_colours(asset, data, held, supersample, near, model_colors if fit_colours else None)
     return asset
 
 
@@ -142,9 +137,9 @@ def holdout_views(train: list[int]) -> list[int]:
 
 
 def file_psnr(positions: np.ndarray, faces: np.ndarray, colors: np.ndarray, texture: TextureMap | None, data,
-              views: list[int], supersample: int, near: float, photos=None) -> float:
+              views: list[int], supersample: int, near: float) -> float:
     """Mean PSNR over `views` of the GLB these arrays make (normalised frame), rendered as the glTF specification
-    defines it, against the photos (photos: index -> photo, default data.load_image)."""
+    defines it, against the photos."""
     import tempfile
     from pathlib import Path
 
@@ -162,7 +157,7 @@ def file_psnr(positions: np.ndarray, faces: np.ndarray, colors: np.ndarray, text
         cam = data.cameras[i]
         rgb = render_asset(asset, cam.world_to_camera, cam.K, cam.width, cam.height, data.background, supersample,
                            near)
-        scores.append(psnr(rgb, np.asarray((data.load_image if photos is None else photos)(i), np.float32)[..., :3]))
+        scores.append(psnr(rgb, np.asarray(data.load_image(i), np.float32)[..., :3]))
     return float(np.mean(scores))
 
 
@@ -175,15 +170,15 @@ FIT_MAX_HOLDOUT_LOSS_DB = 1.0
 
 
 def choose_colours(asset: MeshAsset, data, held: list[int], supersample: int, near: float,
-                   model_colors: np.ndarray | None = None, photos=None) -> None:
+                   model_colors: np.ndarray | None = None) -> None:
     """Score the file's candidates on the held-out training views as a glTF viewer shows them and keep the best:
     the fitted vertex colours unless the model's band-0 colours (`model_colors`, when the vertex colours were
     fitted) beat them by more than FIT_MAX_HOLDOUT_LOSS_DB (the model trained on those views: a fair comparison
     needs more than a small win), then the texture against the vertex colours kept (a tie keeps the texture). What
     was compared and chosen goes into the reports (metrics.json's `vertex_colours` and `texture`)."""
-    plain = file_psnr(asset.positions, asset.faces, asset.colors, None, data, held, supersample, near, photos)
+    plain = file_psnr(asset.positions, asset.faces, asset.colors, None, data, held, supersample, near)
     if model_colors is not None:
-        model = file_psnr(asset.positions, asset.faces, model_colors, None, data, held, supersample, near, photos)
+        model = file_psnr(asset.positions, asset.faces, model_colors, None, data, held, supersample, near)
         fitted = plain >= model - FIT_MAX_HOLDOUT_LOSS_DB
         asset.colour_report = {**(asset.colour_report or {}), "holdout_views": len(held),
                                "holdout_psnr_fitted": plain, "holdout_psnr_model": model,
@@ -192,7 +187,7 @@ def choose_colours(asset: MeshAsset, data, held: list[int], supersample: int, ne
             asset.colors, plain = model_colors, model
     if asset.texture is None:
         return
-    textured = file_psnr(asset.positions, asset.faces, asset.colors, asset.texture, data, held, supersample, near, photos)
+    textured = file_psnr(asset.positions, asset.faces, asset.colors, asset.texture, data, held, supersample, near)
     keep = textured >= plain
     asset.texture_report = {**(asset.texture_report or {}), "holdout_views": len(held),
                             "holdout_psnr_texture": textured, "holdout_psnr_vertex_colours": plain,

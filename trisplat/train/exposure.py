@@ -9,14 +9,7 @@ appearance variants report.
 """
 from __future__ import annotations
 
-import json
-from collections.abc import Callable
-from pathlib import Path
-
-import numpy as np
 import torch
-
-from trisplat.io.atomic import atomic_write_text
 
 PARAMS_PER_IMAGE = 12  # A (3x3, row-major) then b (3)
 # A correction no camera makes: I + A scaling some colour direction by less than MIN_GAIN or more than MAX_GAIN
@@ -92,54 +85,3 @@ class Exposure:
             return {"max_gain_change": 0.0, "max_offset": 0.0}
         diag = p[:, [0, 4, 8]]
         return {"max_gain_change": float(diag.abs().max()), "max_offset": float(p[:, 9:].abs().max())}
-
-
-# The run keeps the learned corrections (one row of PARAMS_PER_IMAGE numbers per camera of the capture) in
-# RUN/exposure.json, so what fits the mesh files' colours to the photos later (`trisplat export`) sees the photos in
-# the scene's common colour too.
-FILE = "exposure.json"
-
-
-def save(run_dir: Path, params: torch.Tensor | np.ndarray) -> None:
-    rows = np.asarray(params.detach().cpu() if isinstance(params, torch.Tensor) else params, np.float64)
-    record = {"layout": "per camera of the capture: A (3x3, row-major), then b (3); the photo shows (I + A) rgb + b "
-                        "of the scene's sRGB render rgb",
-              "params": rows.tolist()}
-    atomic_write_text(Path(run_dir) / FILE, json.dumps(record))
-
-
-def load_saved(run_dir: Path, n_cameras: int) -> np.ndarray | None:
-    """The corrections a run saved ([n_cameras, 12]), or None when it learned none."""
-    path = Path(run_dir) / FILE
-    if not path.is_file():
-        return None
-    try:
-        rows = np.asarray(json.loads(path.read_text())["params"], np.float64)
-    except (ValueError, KeyError, TypeError) as exc:
-        raise ValueError(f"{path}: malformed colour corrections ({exc})") from exc
-    if rows.shape != (n_cameras, PARAMS_PER_IMAGE) or not np.isfinite(rows).all():
-        raise ValueError(f"{path}: colour corrections of shape {rows.shape}, but the capture has {n_cameras} cameras "
-                         f"({PARAMS_PER_IMAGE} finite numbers each): was it loaded with other options?")
-    return rows
-
-
-def undo(photo: np.ndarray, row: np.ndarray) -> np.ndarray:
-    """The photo [H,W,3] (sRGB, [0,1]) in the scene's common colour: its correction `row` undone, clipped to [0,1]."""
-    A = np.eye(3) + np.asarray(row[:9], np.float64).reshape(3, 3)
-    rgb = (np.asarray(photo[..., :3], np.float64) - np.asarray(row[9:], np.float64)) @ np.linalg.inv(A).T
-    out = np.array(photo, np.float32, copy=True)
-    out[..., :3] = np.clip(rgb, 0.0, 1.0)
-    return out
-
-
-def scene_colour_photos(data, params) -> Callable[[int], np.ndarray]:
-    """index -> photo of `data` (a SceneData) as the scene shows it: a training photo with its learned correction
-    undone (what the mesh files' colours are fitted to), any other photo as it is (a test photo has no correction)."""
-    rows = np.asarray(params.detach().cpu() if isinstance(params, torch.Tensor) else params, np.float64)
-    train = {int(i) for i in data.train_indices}
-
-    def load(i: int) -> np.ndarray:
-        photo = np.asarray(data.load_image(i), np.float32)
-        return undo(photo, rows[int(i)]) if int(i) in train else photo
-
-    return load

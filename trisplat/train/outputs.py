@@ -73,7 +73,7 @@ def write_outputs(trainer, pruned) -> dict:
 
     asset = build_asset(scene, data, texture_size=int(getattr(cfg, "texture_size", 0) or 0),
                         faces=getattr(cfg, "export_faces", None), supersample=cfg.eval_supersample, near=cfg.near,
-                        fit_colours=bool(getattr(cfg, "fit_colours", True)), photos=trainer.scene_colour_photos())
+                        fit_colours=bool(getattr(cfg, "fit_colours", True)))
     write_model_files(run_dir, scene, normalization,
                       capture_up(data), asset)
     from trisplat.texture.asset import choice_message

@@ -236,24 +236,10 @@ class Trainer:
 
     def sync_cameras(self) -> None:
         """The refined intrinsics into the capture's cameras (what the switch, texturing and scoring read) and into
-        RUN/intrinsics.json (what `trisplat eval`, `export` and `view` load); the per-photo colour corrections into
-        RUN/exposure.json (what `trisplat export` fits the files' colours with). No-op without either."""
+        RUN/intrinsics.json (what `trisplat eval`, `export` and `view` load). No-op without refinement."""
         if self.intrinsics is not None:
             self.intrinsics.apply(self.data.cameras)
             self.intrinsics.save(self.run_dir)
-        if self.exposure is not None:
-            from trisplat.train import exposure
-
-            exposure.save(self.run_dir, self.exposure.state())
-
-    def scene_colour_photos(self):
-        """index -> photo in the scene's common colour (trisplat.train.exposure.scene_colour_photos), or None when
-        no per-photo corrections are learned (the photos as they are)."""
-        if self.exposure is None:
-            return None
-        from trisplat.train.exposure import scene_colour_photos
-
-        return scene_colour_photos(self.data, self.exposure.state())
 
     def save_checkpoint(self) -> None:
         self.sync_cameras()
