@@ -125,6 +125,26 @@ def test_meshsplatting_switch_replaces_soup_by_connected_mesh(tiny_scene, tmp_pa
     assert m["final_prune"] is None and m["faces"] == len(faces)
 
 
+def test_a_soup_not_yet_switched_is_rendered_at_the_soups_sharpness_past_connect_at(tiny_scene, tmp_path):
+    """The test evaluation that reaches connect_at runs before the next step's switch: the soup must be scored at its
+    own (linear) sigma, not at the surface's, or the run's PSNR curve shows a drop the soup never had."""
+    from trisplat.train import schedules
+
+    tr = _trainer(tiny_scene, tmp_path / "sig", output="surface", connect_at=0.6)
+    cfg = tr.cfg
+    linear = cfg.sigma_start + (cfg.sigma_end - cfg.sigma_start) * 0.65
+    assert tr.sigma(0.65) == pytest.approx(linear)  # 0.35: the soup, even though p is past connect_at
+    assert schedules.sigma(0.65, cfg) == pytest.approx(cfg.surface_sigma * (cfg.sigma_end / cfg.surface_sigma)
+                                                       ** (0.05 / 0.4))
+    tr.switched_p = 0.6  # what the switch records before it renders the soup and fuses it
+    assert tr.sigma(0.65) == pytest.approx(schedules.sigma(0.65, cfg)) and tr.sigma(0.65) < 0.1
+    # the evaluation reads the same sharpness: at p 0.65, scoring the soup at 0.35 differs from scoring it at 0.07
+    tr.switched_p = None
+    soup_score = tr.evaluate(0.65)
+    tr.switched_p = 0.6
+    assert tr.evaluate(0.65) != pytest.approx(soup_score, abs=1e-3)
+
+
 @pytest.fixture(scope="module")
 def small_scene(tmp_path_factory):
     """The demo object seen from 16 training views (fusion needs views all around to carve the free space)."""

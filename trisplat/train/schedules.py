@@ -15,13 +15,18 @@ def sigma(p: float, cfg: TrainConfig) -> float:
     """Window sharpness: linear from sigma_start to sigma_end over the whole run. After the switch to a connected
     surface (cfg.switch_at), at most cfg.surface_sigma, decaying geometrically to sigma_end at the end: the window is
     0 on every edge, so a soft window shows a connected mesh's edges as see-through cracks."""
-    linear = cfg.sigma_start + (cfg.sigma_end - cfg.sigma_start) * p
+    linear = linear_sigma(p, cfg)
     at = cfg.switch_at
     if at is None or p < at or cfg.surface_sigma is None:
         return linear
     start = min(cfg.surface_sigma, cfg.sigma_start + (cfg.sigma_end - cfg.sigma_start) * at)
     q = min((p - at) / max(1.0 - at, 1e-9), 1.0)
     return min(linear, start * (cfg.sigma_end / start) ** q) if start > cfg.sigma_end else linear
+
+
+def linear_sigma(p: float, cfg: TrainConfig) -> float:
+    """The soup's window sharpness: linear from sigma_start at p = 0 to sigma_end at p = 1."""
+    return cfg.sigma_start + (cfg.sigma_end - cfg.sigma_start) * p
 
 
 def _event_index(p: float, begin: float, interval: float) -> int:
