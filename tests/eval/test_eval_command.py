@@ -196,3 +196,36 @@ def test_eval_device_flag_cpu_keeps_the_scores_and_cuda_is_refused_without_a_gpu
     assert not (tmp_path / "gpu").exists()
     with pytest.raises(ValueError, match="device must be one of"):
         evaluate_run(run, "test", "soft", out_dir=tmp_path / "bad", device="tpu", show_progress=False)
+
+
+def test_a_run_with_colour_corrections_also_scores_each_test_photo_with_its_neighbours_exposure(tmp_path):
+    """RUN/exposure.json (written by training on real photos): the evaluation adds psnr_exposure_matched, each render
+    with the correction interpolated from the training photos around it; the plain psnr is unchanged."""
+    from trisplat.run import open_run
+    from trisplat.train.exposure import PARAMS_PER_IMAGE
+
+    run, data = _make_run(tmp_path, "sphere")
+    plain = evaluate_run(run, "test", "hard", out_dir=tmp_path / "plain", report=False, show_progress=False,
+                         lpips_weights=tmp_path / "none.npz")
+    assert "psnr_exposure_matched" not in plain.extra and all(v.psnr_exposure_matched is None for v in plain.views)
+    n = len(data.cameras)
+    params = np.zeros((n, PARAMS_PER_IMAGE))
+    train = [int(i) for i in data.train_indices]
+    params[train, 0] = -0.5  # every training photo: red halved
+    (run / "exposure.json").write_text(json.dumps({"photos": [c.name for c in data.cameras], "train": train,
+                                                   "params": params.tolist()}))
+    m = evaluate_run(run, "test", "hard", out_dir=tmp_path / "matched", show_progress=False,
+                     lpips_weights=tmp_path / "none.npz")
+    scene, _ = open_run(run).load_model()
+    for v, p in zip(m.views, plain.views):
+        assert v.psnr == p.psnr  # the scene's own score does not change
+        gt = data.load_image(v.index)
+        rgb = render_view(scene, data.cameras[v.index], "hard", data.background)
+        halved = rgb * np.array([0.5, 1.0, 1.0], np.float32)
+        assert v.psnr_exposure_matched == pytest.approx(psnr(gt, halved), abs=1e-4)
+        assert v.psnr_exposure_matched < v.psnr - 3  # these photos were not taken with half the red
+    assert m.extra["psnr_exposure_matched"] == pytest.approx(np.mean([v.psnr_exposure_matched for v in m.views]))
+    assert "no pixel of the held-out photo" in m.extra["exposure_matched"]
+    saved = json.loads((tmp_path / "matched" / "metrics.json").read_text())
+    assert saved["psnr_exposure_matched"] == pytest.approx(m.extra["psnr_exposure_matched"])
+    assert "psnr_exposure_matched" in (tmp_path / "matched" / "report.html").read_text()

@@ -93,3 +93,42 @@ def test_one_photo_per_step_moves_only_that_photos_correction_and_learns_the_gai
     assert (moved[3] - moved[0]).abs().max() > 1e-3
     learned = torch.stack([torch.diagonal(torch.eye(3) + e.state()[i, :9].reshape(3, 3)) for i in range(n)])
     assert (learned - gains).abs().max() < 0.03
+
+
+def test_a_held_out_photo_gets_its_neighbours_correction_interpolated_in_photo_order(tmp_path):
+    import json
+
+    import numpy as np
+
+    from trisplat.train.exposure import FILE, apply_correction, load_saved, neighbour_correction
+
+    params = np.zeros((6, PARAMS_PER_IMAGE))
+    params[1, [0, 4, 8]] = -0.2  # photo 1: gain 0.8
+    params[4, [0, 4, 8]] = 0.4  # photo 4: gain 1.4
+    params[4, 9:] = [0.03, 0.0, -0.03]
+    train = np.array([4, 1])  # any order
+    # a training photo keeps its own; photo 2 lies a third of the way from 1 to 4, photo 3 two thirds
+    np.testing.assert_allclose(neighbour_correction(params, train, 1), params[1])
+    np.testing.assert_allclose(neighbour_correction(params, train, 2)[[0, 4, 8]], [0.0] * 3, atol=1e-12)
+    np.testing.assert_allclose(neighbour_correction(params, train, 3)[[0, 4, 8, 9, 11]], [0.2, 0.2, 0.2, 0.02, -0.02])
+    # before the first and after the last training photo: the nearest one's
+    np.testing.assert_allclose(neighbour_correction(params, train, 0), params[1])
+    np.testing.assert_allclose(neighbour_correction(params, train, 5), params[4])
+    # applied as Exposure.apply does, then clipped to what a display shows
+    rgb = np.random.default_rng(0).random((4, 5, 3))
+    e = Exposure(6, lr=0.01, values=torch.as_tensor(params, dtype=torch.float32))
+    expect = e.apply(torch.as_tensor(rgb, dtype=torch.float32), 4).clamp(0, 1).detach().numpy()
+    np.testing.assert_allclose(apply_correction(rgb, params[4]), expect, atol=1e-6)
+
+    # saved with the run, read back; a file for another capture is refused by name
+    e = Exposure(6, lr=0.01, values=torch.as_tensor(params, dtype=torch.float32), train_indices=[1, 4])
+    assert load_saved(tmp_path, 6) is None
+    e.save(tmp_path, [f"p{i}.jpg" for i in range(6)])
+    got, tr = load_saved(tmp_path, 6)
+    np.testing.assert_allclose(got, params, atol=1e-7)
+    assert tr.tolist() == [1, 4]
+    with pytest.raises(ValueError, match=rf"{FILE}.*6 photos.*capture has 7"):
+        load_saved(tmp_path, 7)
+    (tmp_path / FILE).write_text(json.dumps({"params": [[0.0] * 12] * 6}))
+    with pytest.raises(ValueError, match="malformed colour corrections"):
+        load_saved(tmp_path, 6)

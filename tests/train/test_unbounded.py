@@ -65,6 +65,10 @@ def test_default_run_on_a_room_keeps_its_faces_walls_and_psnr(room, tmp_path):
     assert m["coverage"] >= 0.99
     assert m["connected"] and m["mesh"]["largest_component_fraction"] > 0.9
     assert m["health"]["ok"], m["health"]
+    # photos without alpha get per-photo colour corrections, kept with the run; this room's renders all have one
+    # exposure, so matching each test photo's exposure to its neighbours' changes its score little
+    assert (run_dir / "exposure.json").is_file()
+    assert abs(m["psnr_exposure_matched"] - m["psnr"]) < 1.0, m
 
 
 def test_a_forced_collapse_is_rolled_back_and_said(room, tmp_path):

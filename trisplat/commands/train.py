@@ -384,6 +384,9 @@ def final_lines(m: dict, wall_s: float, run_dir) -> list[str]:
              if m.get("file_psnr") is not None else f"test PSNR {m['psnr']:.2f} dB (hard)")
     lines = [f"{what} in {wall_s / 60:.1f} min: {score}, SSIM {m['ssim']:.3f}{lp}, {m['faces']} faces, "
              f"{m['vertices']} vertices ({shape}{far}{cov}) -> {run_dir}"]
+    if m.get("psnr_exposure_matched") is not None:
+        lines.append(f"  with each test photo's exposure taken from its neighbours in the photo order (RUN/exposure.json)"
+                     f": the model {m['psnr_exposure_matched']:.2f} dB")
     for g in (m.get("intrinsics") or {}).get("groups", []):
         dx, dy = g["principal_point_shift_px"]
         lines.append(f"  intrinsics refined ({g['cameras']} cameras): focal length {g['fx_before']:.1f} -> "

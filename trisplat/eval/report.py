@@ -32,6 +32,7 @@ class ViewMetrics:
     psnr: float
     ssim: float
     lpips: float | None = None
+    psnr_exposure_matched: float | None = None  # runs with per-photo colour corrections (trisplat.train.exposure)
 
 
 @dataclass

@@ -186,6 +186,9 @@ def evaluate_run(
     shaded = set(sorted(shown)[:: max(1, -(-len(shown) // REPORT_SHADED_VIEWS))][:REPORT_SHADED_VIEWS]) if report \
         else set()
 
+    from trisplat.train.exposure import apply_correction, load_saved, neighbour_correction
+
+    corrections = load_saved(run.path, len(data.cameras))  # None unless the run learned per-photo colour
     views: list[ViewMetrics] = []
     images: list[ViewImages] = []
     render_s = 0.0
@@ -200,7 +203,10 @@ def evaluate_run(
             raise ValueError(f"camera {cam.name or i}: ground truth {gt.shape} and render {rgb.shape} differ")
         name = cam.name or f"view_{i:04d}"
         lp = lpips(gt, rgb, lpips_weights) if lpips_note is None else None
-        views.append(ViewMetrics(index=i, name=name, psnr=psnr(gt, rgb), ssim=ssim(gt, rgb), lpips=lp))
+        matched = None if corrections is None else psnr(gt, apply_correction(rgb, neighbour_correction(
+            *corrections, i)).astype(np.float32))
+        views.append(ViewMetrics(index=i, name=name, psnr=psnr(gt, rgb), ssim=ssim(gt, rgb), lpips=lp,
+                                 psnr_exposure_matched=matched))
         bar.set_postfix(psnr=f"{np.mean([v.psnr for v in views]):.2f}")
         if k in shown:
             surface = render_shaded(on_dev, cam, data.background, options.get("near", 0.01), ss) \
@@ -211,6 +217,13 @@ def evaluate_run(
     extra = {"run": str(run.path), "step": run.state.get("step"), "finished": run.state.get("finished"),
              "train_wall_s": _last(history, "wall_s"), "faces": scene.num_faces,
              "vertices": scene.num_vertices, "supersample": ss}  # fmt: skip
+    if corrections is not None:
+        extra["psnr_exposure_matched"] = float(np.mean([v.psnr_exposure_matched for v in views]))
+        extra["exposure_matched"] = ("PSNR of each render with the colour correction (exposure, white balance) "
+                                     + ("its photo had in training" if split == "train" else
+                                        "interpolated between the training photos before and after it in the "
+                                        "photo order: no pixel of the held-out photo is used")
+                                     + "; psnr is the scene's own colour")
     if sigma is not None:
         extra["sigma"] = sigma
     if max_views is not None:

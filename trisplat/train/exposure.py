@@ -6,10 +6,24 @@ colours). Each photo i gets rgb' = (I + A_i) rgb + b_i (A_i [3,3], b_i [3], both
 render before the loss. The scene itself stays in the common colour of the photos: evaluation, test renders and
 exported files use the uncorrected render (a held-out photo has no learned correction), as NeRF-W and the 3DGS
 appearance variants report.
+
+A finished run keeps its corrections in RUN/exposure.json. Evaluation adds a second, clearly named score from them:
+each held-out photo's render with the correction its neighbours in the capture's photo order had
+(`neighbour_correction`). Auto exposure drifts along a capture (bonsai's learned gains go from about 0.9 to 1.15 along
+the sequence, and a per-channel gain fitted to each test photo alone agrees), so the plain score measures the scene
+and the photo's exposure together; the matched one uses no pixel of the held-out photo.
 """
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
+import numpy as np
 import torch
+
+from trisplat.io.atomic import atomic_write_text
+
+FILE = "exposure.json"
 
 PARAMS_PER_IMAGE = 12  # A (3x3, row-major) then b (3)
 # A correction no camera makes: I + A scaling some colour direction by less than MIN_GAIN or more than MAX_GAIN
@@ -68,6 +82,13 @@ class Exposure:
     def state(self) -> torch.Tensor:
         return self.params.detach().clone()
 
+    def save(self, run_dir: Path, names: list[str]) -> None:
+        """RUN/exposure.json: every photo's correction (rows of photos no step saw stay zero) and the training
+        photos' indices, in the capture's photo order (`names`)."""
+        record = {"model": "rgb' = (I + A) rgb + b on the render's colour in [0,1]; params = A (3x3, row-major), b",
+                  "photos": list(names), "train": self.train.tolist(), "params": self.params.detach().tolist()}
+        atomic_write_text(Path(run_dir) / FILE, json.dumps(record))
+
     def misfits(self) -> list[tuple[int, float, float]]:
         """Training photos whose correction no camera makes (see MIN_GAIN): (index, smallest and largest singular
         value of I + A), worst first."""
@@ -88,3 +109,43 @@ class Exposure:
             return {"max_gain_change": 0.0, "max_offset": 0.0}
         diag = p[:, [0, 4, 8]]
         return {"max_gain_change": float(diag.abs().max()), "max_offset": float(p[:, 9:].abs().max())}
+
+
+def load_saved(run_dir: Path, n_photos: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """(params [n_photos,12], training photo indices) from RUN/exposure.json, or None when the run learned none."""
+    path = Path(run_dir) / FILE
+    if not path.is_file():
+        return None
+    try:
+        record = json.loads(path.read_text())
+        params = np.asarray(record["params"], dtype=np.float64)
+        train = np.asarray(record["train"], dtype=np.int64)
+    except (ValueError, KeyError, TypeError) as exc:
+        raise ValueError(f"{path}: malformed colour corrections ({exc})") from exc
+    if params.shape != (n_photos, PARAMS_PER_IMAGE) or not len(train) or train.min() < 0 or train.max() >= n_photos:
+        raise ValueError(f"{path}: colour corrections for {len(params)} photos (training indices up to "
+                         f"{train.max(initial=-1)}), but the capture has {n_photos}: was it loaded with other options?")
+    return params, train
+
+
+def neighbour_correction(params: np.ndarray, train: np.ndarray, index: int) -> np.ndarray:
+    """The correction [12] photo `index` most likely needs: its own for a training photo; for a held-out one,
+    interpolated linearly by position in the photo order between the training photos just before and after it (the
+    nearest one at either end of the capture). Reads no pixel of the photo itself."""
+    train = np.sort(np.asarray(train, dtype=np.int64))
+    if index in train:
+        return params[index]
+    before, after = train[train < index], train[train > index]
+    if not len(before):
+        return params[after[0]]
+    if not len(after):
+        return params[before[-1]]
+    a, b = before[-1], after[0]
+    t = (index - a) / (b - a)
+    return (1.0 - t) * params[a] + t * params[b]
+
+
+def apply_correction(rgb: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """rgb [...,3] in [0,1] with correction p [12] applied, clipped to [0,1] (as Exposure.apply, then a display)."""
+    A = np.eye(3) + np.asarray(p[:9], dtype=np.float64).reshape(3, 3)
+    return np.clip(np.asarray(rgb, dtype=np.float64) @ A.T + np.asarray(p[9:], dtype=np.float64), 0.0, 1.0)

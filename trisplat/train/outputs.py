@@ -97,6 +97,8 @@ def write_outputs(trainer, pruned) -> dict:
         metrics.update({"psnr": hard.psnr, "ssim": hard.ssim, "lpips": hard.lpips, "lpips_net": "alex-v0.1",
                         "soft_psnr": soft.psnr, "soft_ssim": soft.ssim, "test_views": len(hard.views),
                         "supersample": ss, "report": str(Path("eval_test") / "report.html")})
+        if "psnr_exposure_matched" in hard.extra:  # a capture whose photos got colour corrections
+            metrics["psnr_exposure_matched"] = hard.extra["psnr_exposure_matched"]
         if cfg.eval_supersample != 1:  # the same mesh with one sample per pixel centre (aliased edges), on record
             one = evaluate_run(run_dir, "test", "hard", out_dir=run_dir / "eval_test_1spp", report=False,
                                show_progress=False, supersample=1)

@@ -243,6 +243,8 @@ class Trainer:
 
     def save_checkpoint(self) -> None:
         self.sync_cameras()
+        if self.exposure is not None:  # what `trisplat eval` scores held-out photos' matched exposure with
+            self.exposure.save(self.run_dir, [c.name or f"view_{i:04d}" for i, c in enumerate(self.data.cameras)])
         self._last_good = checkpoint_state(self.ts, self.step, self.clock.total, self.generator, self._extra())
         atomic_torch_save(self._last_good, self.run_dir / layout.CHECKPOINT)
         self._write_state(finished=False)
