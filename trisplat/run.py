@@ -11,6 +11,8 @@ RUN/
   mesh.ply, mesh.obj (+ mesh.mtl), mesh.glb   the opaque mesh, per-vertex RGB, in the capture's frame (the GLB
                        turned Y-up, as glTF defines)
   metrics.json         final metrics
+  exposure.json        per-photo colour corrections (captures without alpha; trisplat.train.exposure)
+  intrinsics.json      the refined focal length and principal point (--refine-intrinsics; trisplat.train.intrinsics)
   renders/             a few test renders (hard mode)
 
 `trisplat slam` writes the same config.json, state.json ("step": frames done), model.ply, mesh.ply and metrics.json,
