@@ -125,24 +125,26 @@ def test_meshsplatting_switch_replaces_soup_by_connected_mesh(tiny_scene, tmp_pa
     assert m["final_prune"] is None and m["faces"] == len(faces)
 
 
-def test_a_soup_not_yet_switched_is_rendered_at_the_soups_sharpness_past_connect_at(tiny_scene, tmp_path):
-    """The test evaluation that reaches connect_at runs before the next step's switch: the soup must be scored at its
-    own (linear) sigma, not at the surface's, or the run's PSNR curve shows a drop the soup never had."""
-    from trisplat.train import schedules
+def test_a_soup_not_yet_switched_is_scored_at_the_soups_sharpness_past_connect_at(tiny_scene, tmp_path):
+    """The test evaluation that reaches connect_at runs before the next step's switch, where sigma(p) is already the
+    surface's: the soup must be scored at its own (linear) sigma, or the run's PSNR curve shows a drop the soup never
+    had. Once the switch was attempted (switched_p), the evaluation follows sigma(p) again."""
+    from trisplat.train.trainer import psnr_value
 
     tr = _trainer(tiny_scene, tmp_path / "sig", output="surface", connect_at=0.6)
-    cfg = tr.cfg
-    linear = cfg.sigma_start + (cfg.sigma_end - cfg.sigma_start) * 0.65
-    assert tr.sigma(0.65) == pytest.approx(linear)  # 0.35: the soup, even though p is past connect_at
-    assert schedules.sigma(0.65, cfg) == pytest.approx(cfg.surface_sigma * (cfg.sigma_end / cfg.surface_sigma)
-                                                       ** (0.05 / 0.4))
+    cfg, p = tr.cfg, 0.65
+    linear = cfg.sigma_start + (cfg.sigma_end - cfg.sigma_start) * p  # 0.35
+    assert tr.sigma(p) < 0.1  # the surface's schedule, for the steps after the switch
+
+    def score(sigma):
+        return float(np.mean([psnr_value(tr.render(i, p, supersample=cfg.eval_supersample, sigma=sigma).rgb
+                                         .clamp(0, 1), tr.gt(i)) for i in list(tr.data.test_indices)[:2]]))
+
+    at_linear, at_surface = score(linear), score(tr.sigma(p))
+    assert abs(at_linear - at_surface) > 1e-3  # the two sharpnesses score differently here
+    assert tr.evaluate(p, 2) == pytest.approx(at_linear, abs=1e-6)
     tr.switched_p = 0.6  # what the switch records before it renders the soup and fuses it
-    assert tr.sigma(0.65) == pytest.approx(schedules.sigma(0.65, cfg)) and tr.sigma(0.65) < 0.1
-    # the evaluation reads the same sharpness: at p 0.65, scoring the soup at 0.35 differs from scoring it at 0.07
-    tr.switched_p = None
-    soup_score = tr.evaluate(0.65)
-    tr.switched_p = 0.6
-    assert tr.evaluate(0.65) != pytest.approx(soup_score, abs=1e-3)
+    assert tr.evaluate(p, 2) == pytest.approx(at_surface, abs=1e-6)
 
 
 @pytest.fixture(scope="module")

@@ -294,12 +294,7 @@ class Trainer:
     def sigma(self, p: float) -> float:
         """Window sharpness at progress p (schedules.sigma), its surface schedule starting where the switch was
         attempted (switched_p) once it was: a run resumed with another --connect-at or --output keeps the sharpness
-        it trained with instead of jumping. A soup not yet switched keeps the soup's linear schedule even at or past
-        cfg.switch_at: the test evaluation that reaches switch_at runs before the next step's switch, and rendering
-        the soup there at the surface's sharpness (0.1 instead of ~0.4) read as a 1.2 dB drop of the soup (bonsai
-        and fox, 50% -> 60%) that was not there."""
-        if self.switched_p is None and not self.connected:
-            return schedules.linear_sigma(p, self.cfg)
+        it trained with instead of jumping."""
         at = self.switched_p if self.switched_p is not None else self.cfg.switch_at
         if at != self.cfg.switch_at:
             if getattr(self, "_sigma_cfg", None) is None or self._sigma_cfg.connect_at != at:
@@ -636,7 +631,12 @@ class Trainer:
         if not idx:
             return float("nan")
         ss = self.cfg.eval_supersample
-        return float(np.mean([psnr_value(self.render(i, p, supersample=ss).rgb.clamp(0, 1), self.gt(i)) for i in idx]))
+        # a soup not yet switched is scored at the soup's own sharpness: the evaluation that reaches switch_at runs
+        # before the next step's switch, where sigma(p) is already the surface's (0.1 instead of ~0.4), and that
+        # read as a 1.2 dB drop of the soup (bonsai and fox, 50% -> 60%) that was not there
+        sigma = schedules.linear_sigma(p, self.cfg) if self.switched_p is None and not self.connected else None
+        return float(np.mean([psnr_value(self.render(i, p, supersample=ss, sigma=sigma).rgb.clamp(0, 1), self.gt(i))
+                              for i in idx]))
 
     # ------------------------------------------------------------------------------------------------------- run
     def _plan_minutes(self, measured_s_per_step: float, elapsed_s: float) -> None:
