@@ -65,10 +65,8 @@ def test_default_run_on_a_room_keeps_its_faces_walls_and_psnr(room, tmp_path):
     assert m["coverage"] >= 0.99
     assert m["connected"] and m["mesh"]["largest_component_fraction"] > 0.9
     assert m["health"]["ok"], m["health"]
-    # photos without alpha get per-photo colour corrections, kept with the run; this room's renders all have one
-    # exposure, so matching each test photo's exposure to its neighbours' changes its score little
-    assert (run_dir / "exposure.json").is_file()
-    assert abs(m["psnr_exposure_matched"] - m["psnr"]) < 1.0, m
+    # no per-photo colour corrections by default (config.exposure), so no exposure-matched score
+    assert not (run_dir / "exposure.json").exists() and "psnr_exposure_matched" not in m
 
 
 def test_a_forced_collapse_is_rolled_back_and_said(room, tmp_path):
@@ -76,8 +74,13 @@ def test_a_forced_collapse_is_rolled_back_and_said(room, tmp_path):
     peak), rolls back, switches pruning off, and says so in the history and the metrics."""
     run_dir = tmp_path / "collapse"
     trainer = _room_trainer(room, run_dir, steps=300, prune_threshold_start=0.999, prune_max_fraction=1.0,
-                            output="soup", final_max_weight_pass=False)
+                            output="soup", final_max_weight_pass=False, exposure="auto")
     trainer.train()
+    # auto: photos without alpha get per-photo colour corrections, kept with the run, and an exposure-matched score;
+    # this room's renders all have one exposure, so matching each test photo's to its neighbours' changes little
+    assert trainer.exposure is not None and (run_dir / "exposure.json").is_file()
+    m = json.loads((run_dir / layout.METRICS).read_text())
+    assert abs(m["psnr_exposure_matched"] - m["psnr"]) < 1.0, m
     hist = _history(run_dir)
     collapse = [h for h in hist if "collapse" in h]
     assert collapse and "face count fell" in collapse[0]["collapse"]

@@ -120,10 +120,14 @@ class TrainConfig:
     """Vertex-depth term only for |vertex depth - rendered depth| below this (scene units, normalised frame)."""
 
     # -- per-photo colour (trisplat.train.exposure)
-    exposure: Literal["auto", "on", "off"] = "auto"
+    exposure: Literal["auto", "on", "off"] = "off"
     """Learn an affine colour correction per training photo (exposure, white balance), applied to the render in the
-    loss only; test scores and files use the uncorrected scene. auto: on for captures without alpha (real photos),
-    off for synthetic object captures (alpha)."""
+    loss only; test scores and files use the uncorrected scene, and evaluation adds psnr_exposure_matched (each
+    test photo with its neighbours' correction). auto: on for captures without alpha (real photos), off for object
+    captures (alpha). Off by default: the corrections hold the scene in the photos' common colour, and a held-out
+    photo keeps the exposure of its place in the capture; on bonsai (auto exposure drifting about +-13% along the
+    capture) they cost 1.1 dB of test PSNR and 0.36 dB on mesh.glb (docs/benchmarks.md). On: a consistent colour
+    across a capture whose exposure changes, and a warning naming photos whose correction no camera makes."""
     lr_exposure: float = 5e-3
     """Adam learning rate of the per-photo colour corrections."""
 
