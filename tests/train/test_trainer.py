@@ -466,3 +466,22 @@ def test_progress_bar_chooses_lines_for_a_file_and_tqdm_for_a_terminal(tmp_path)
         bar.close()
     text = (tmp_path / "log.txt").read_text()
     assert "\r" not in text and 20 <= text.count("\n") <= 22
+
+
+def test_evaluate_hard_with_sh_band_0_scores_the_view_independent_colour(tiny_scene, tmp_path):
+    """What health.verdict compares a file with: the model's colour without its view-dependent SH bands."""
+    import dataclasses
+
+    from trisplat.eval.views import render_view
+    from trisplat.train.trainer import psnr_value
+
+    tr = _trainer(tiny_scene, tmp_path / "dc")
+    with torch.no_grad():
+        tr.ts.params["sh_rest"].normal_(0.0, 0.3, generator=torch.Generator().manual_seed(0))
+    views = list(tr.data.test_indices)
+    dc = dataclasses.replace(tr.ts.to_scene(), sh=tr.ts.to_scene().sh[:, :1].contiguous())
+    expect = np.mean([psnr_value(torch.as_tensor(render_view(dc, tr.data.cameras[i], "hard", tr.cfg.background,
+                                                             supersample=tr.cfg.eval_supersample)), tr.gt(i))
+                      for i in views])
+    assert tr.evaluate_hard(views, sh_degree=0) == pytest.approx(expect, abs=1e-6)
+    assert abs(tr.evaluate_hard(views) - expect) > 0.05  # the bands 1+ changed the colour

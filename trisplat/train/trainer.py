@@ -792,13 +792,16 @@ class Trainer:
         return out
 
     @torch.no_grad()
-    def evaluate_hard(self, views) -> float | None:
-        """Mean PSNR of the opaque mesh (z-buffer, eval_supersample) on these views; None without views."""
+    def evaluate_hard(self, views, sh_degree: int | None = None) -> float | None:
+        """Mean PSNR of the opaque mesh (z-buffer, eval_supersample) on these views; None without views. sh_degree:
+        colour with the SH bands up to this degree only (0: the view-independent colour)."""
         from trisplat.eval.views import render_view
 
         if not len(views):
             return None
         scene = self.ts.to_scene()
+        if sh_degree is not None:  # (dataclasses.replace keeps the scene's colour space, linear_light)
+            scene = dataclasses.replace(scene, sh=scene.sh[:, : num_sh_bases(sh_degree)].contiguous())
         return float(np.mean([psnr_value(torch.as_tensor(render_view(
             scene, self.data.cameras[int(i)], "hard", self.cfg.background, supersample=self.cfg.eval_supersample)),
             self.gt(int(i))) for i in views]))
@@ -859,7 +862,7 @@ class Trainer:
     def _run_verdict(self, metrics: dict) -> dict:
         """What the run says about itself (trisplat.train.health.verdict): coverage of the test views, collapses,
         the final PSNR against the best seen; with a far field, the connected surface's own statistics."""
-        from trisplat.train.health import add_to_report, verdict
+        from trisplat.train.health import MAX_FILE_LOSS, add_to_report, verdict
 
         coverage = self.test_coverage()
         extra = {"coverage": coverage, "switch_s": self.switch_s, "far_field_faces": self.far_faces,
@@ -877,8 +880,13 @@ class Trainer:
             extra["mesh"] = {**metrics.get("mesh", {}), **{k: st[k] for k in metrics.get("mesh", {}) if k in st},
                              "of": "the connected surface (without the far-field soup)"}
             extra["surface_faces"] = surface.num_faces
+        view_independent = None  # measured only when the file is far below the model (see health.verdict)
+        if metrics.get("file_psnr") is not None and metrics.get("psnr") is not None and \
+                metrics["file_psnr"] < metrics["psnr"] - MAX_FILE_LOSS:
+            view_independent = self.evaluate_hard(list(self.data.test_indices), sh_degree=0)
+            extra["psnr_sh_band_0"] = view_independent
         extra["health"] = verdict(self.health, metrics.get("psnr"), coverage, metrics.get("file_psnr"),
-                                  self._misfit_warnings())
+                                  self._misfit_warnings(), view_independent)
         if metrics.get("report"):
             add_to_report(self.run_dir / metrics["report"], extra["health"])
         return extra
