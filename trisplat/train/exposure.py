@@ -57,9 +57,7 @@ class Exposure:
 
     def apply(self, rgb: torch.Tensor, index: int) -> torch.Tensor:
         """rgb [H,W,3] as photo `index` would show it."""
-        p = self.params[index]
-        A = torch.eye(3, dtype=rgb.dtype) + p[:9].reshape(3, 3).to(rgb.dtype)
-        return rgb @ A.T + p[9:].to(rgb.dtype)
+        return affine(rgb, self.params[index])
 
     def step(self, scale: float = 1.0) -> None:
         for group in self.optimizer.param_groups:
@@ -145,7 +143,13 @@ def neighbour_correction(params: np.ndarray, train: np.ndarray, index: int) -> n
     return (1.0 - t) * params[a] + t * params[b]
 
 
+def affine(rgb: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
+    """rgb [...,3] through the correction p [12]: (I + A) rgb + b, in rgb's dtype."""
+    A = torch.eye(3, dtype=rgb.dtype) + p[:9].reshape(3, 3).to(rgb.dtype)
+    return rgb @ A.T + p[9:].to(rgb.dtype)
+
+
 def apply_correction(rgb: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """rgb [...,3] in [0,1] with correction p [12] applied, clipped to [0,1] (as Exposure.apply, then a display)."""
-    A = np.eye(3) + np.asarray(p[:9], dtype=np.float64).reshape(3, 3)
-    return np.clip(np.asarray(rgb, dtype=np.float64) @ A.T + np.asarray(p[9:], dtype=np.float64), 0.0, 1.0)
+    """rgb [...,3] in [0,1] with correction p [12] applied (`affine`), clipped to [0,1] as a display shows it."""
+    out = affine(torch.as_tensor(np.asarray(rgb, dtype=np.float64)), torch.as_tensor(np.asarray(p, dtype=np.float64)))
+    return out.clamp(0.0, 1.0).numpy()

@@ -800,8 +800,8 @@ class Trainer:
         if not len(views):
             return None
         scene = self.ts.to_scene()
-        if sh_degree is not None:  # (dataclasses.replace keeps the scene's colour space, linear_light)
-            scene = dataclasses.replace(scene, sh=scene.sh[:, : num_sh_bases(sh_degree)].contiguous())
+        if sh_degree is not None:
+            scene = _with_sh_degree(scene, sh_degree)
         return float(np.mean([psnr_value(torch.as_tensor(render_view(
             scene, self.data.cameras[int(i)], "hard", self.cfg.background, supersample=self.cfg.eval_supersample)),
             self.gt(int(i))) for i in views]))
@@ -904,5 +904,4 @@ def _with_sh_degree(scene: TriangleScene, degree: int) -> TriangleScene:
     sh = scene.sh
     if sh.shape[1] < K:
         sh = torch.cat([sh, torch.zeros(sh.shape[0], K - sh.shape[1], 3, dtype=sh.dtype)], 1)
-    return TriangleScene(scene.positions, sh[:, :K].contiguous(), scene.opacity_logit, scene.faces,
-                         scene.opacity_floor)
+    return dataclasses.replace(scene, sh=sh[:, :K].contiguous())  # (keeps every other field: linear_light too)
