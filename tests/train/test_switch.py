@@ -240,3 +240,37 @@ def test_the_trainers_truncation_is_wider_for_objects_unless_given():
     for bad in (0.0, -1.0):
         with pytest.raises(ValueError, match="surface_truncation must be > 0"):
             TrainConfig(surface_truncation=bad)
+
+
+
+def test_pieces_cut_off_by_the_inner_box_are_told_apart_from_the_scenes_own():
+    """An unbounded capture's surface is fused in the inner box: the near ends of walls and furniture that the box
+    cuts off come out as slabs at its faces (bonsai: five, 17% of the fused faces). Those go to the far field; the
+    largest piece stays even where it reaches the box (a floor), and so does a piece wholly inside (an object)."""
+    import trimesh
+
+    from trisplat.scene.model import TriangleScene
+    from trisplat.train.switch import box_cut_pieces, inner_box
+
+    def scene_of(meshes):
+        mesh = trimesh.util.concatenate(meshes)
+        return TriangleScene.from_rgb(torch.as_tensor(mesh.vertices, dtype=torch.float32),
+                                      torch.as_tensor(mesh.faces, dtype=torch.int32),
+                                      torch.full((len(mesh.vertices), 3), 0.5))
+
+    main = trimesh.creation.icosphere(subdivisions=4, radius=0.3)
+    main.apply_translation((0, 0.7, 0))  # the largest piece, reaching the box's face y = 1
+    slab = trimesh.creation.box(extents=(0.05, 0.3, 0.3))
+    slab.apply_translation((0.975, 0.5, 0))  # a wall's end at x = 1
+    corner = trimesh.creation.box(extents=(0.2, 0.2, 0.2))
+    corner.apply_translation((-0.895, -0.5, 0.5))  # 0.005 from x = -1: within the tolerance
+    inside = trimesh.creation.icosphere(subdivisions=2, radius=0.1)  # an object standing in the room
+    parts = [main, slab, corner, inside]
+    n = np.cumsum([0] + [len(p.faces) for p in parts])
+    cut = box_cut_pieces(scene_of(parts), inner_box(), tolerance=0.01)
+    expected = np.zeros(n[-1], bool)
+    expected[n[1]:n[3]] = True  # the slab and the corner
+    np.testing.assert_array_equal(cut, expected)
+    # a tolerance below the corner's gap keeps it; one piece is never cut, whatever it reaches
+    assert cut[n[2]:n[3]].all() and not box_cut_pieces(scene_of(parts), inner_box(), 0.001)[n[2]:n[3]].any()
+    assert not box_cut_pieces(scene_of([slab]), inner_box(), 0.01).any()

@@ -375,7 +375,7 @@ def final_lines(m: dict, wall_s: float, run_dir) -> list[str]:
     health = m.get("health") or {"ok": True, "problems": []}
     what = "done" if health["ok"] else "finished, but the result is NOT trustworthy"
     shape = result_shape(m)
-    far = (f" + a far-field layer of {m['far_field_faces']} faces (soup beyond the inner box, background sphere)"
+    far = (f" + a far-field layer of {m['far_field_faces']} faces (what lies beyond the inner box, background sphere)"
            if m.get("far_field_faces") else "")
     cov = f", {100 * m['coverage']:.1f}% of test pixels covered" if m.get("coverage") is not None else ""
     # what a user gets is the file: its score comes first when there is one (an unlit file cannot hold the

@@ -530,6 +530,24 @@ def far_field_mask(scene: TriangleScene, box: np.ndarray) -> np.ndarray:
     return ~((cen >= b[0]) & (cen <= b[1])).all(1)
 
 
+def box_cut_pieces(scene: TriangleScene, box: np.ndarray, tolerance: float) -> np.ndarray:
+    """bool [F]: the faces of every piece of a fused surface, but its largest, that reaches the fusion box's
+    boundary (a vertex within `tolerance`, scene units, of one of its faces). Fused in the inner box of an unbounded
+    capture, these are the near ends of walls and furniture that the box cuts off: the far field's content, not the
+    scene's. A piece wholly inside the box is the scene's and is not flagged."""
+    faces = scene.faces.detach().cpu().numpy().astype(np.int64)
+    n, label = face_components(faces, scene.num_vertices)
+    if n < 2:
+        return np.zeros(len(faces), bool)
+    pos = scene.positions.detach().cpu().numpy().astype(np.float64)
+    b = np.asarray(box, dtype=np.float64)
+    near = ((pos <= b[0] + tolerance) | (pos >= b[1] - tolerance)).any(1)  # [V] at the box's boundary
+    touches = np.zeros(n, bool)
+    touches[label[near[faces].any(1)]] = True
+    touches[np.argmax(np.bincount(label, minlength=n))] = False
+    return touches[label]
+
+
 def sub_scene(scene: TriangleScene, face_mask: np.ndarray) -> TriangleScene:
     """The faces where face_mask [F] is True with the vertices they use (re-indexed), SH, opacity logits, floor."""
     faces = scene.faces.detach().cpu().numpy().astype(np.int64)[np.asarray(face_mask, bool)]

@@ -137,9 +137,10 @@ class Trainer:
             from trisplat.train.intrinsics import Intrinsics
 
             self.intrinsics = Intrinsics(data.cameras, cfg.lr_focal, cfg.lr_principal_point)
-        self.far_faces = 0  # after the switch of a capture without a content box: the far-field layer (the soup beyond
-        # the inner box, then the background sphere), kept as the last rows of the face table (their vertices the last
-        # vertex rows) behind the connected surface
+        # after the switch of a capture without a content box: the far-field layer (the surface's pieces cut off by
+        # the inner box, the soup beyond it, then the background sphere), kept as the last rows of the face table
+        # (their vertices the last vertex rows) behind the connected surface
+        self.far_faces = 0
         self.background_faces = 0  # of which the background sphere's (trisplat.scene.background; the very last rows)
         self._last_prune = self._last_densify = self._last_refine = -(10**9)
         self.init_report = None  # what the initialisation did (when this trainer made the initial triangles)
@@ -504,6 +505,7 @@ class Trainer:
         from trisplat.train.switch import (
             SurfaceConfig,
             append_scene,
+            box_cut_pieces,
             far_field_mask,
             inner_box,
             soup_to_surface,
@@ -538,11 +540,23 @@ class Trainer:
         surface, report = soup_to_surface(
             soup, [self.data.cameras[i] for i in train], lambda n: self.render(train[n], p), box, scfg, say,
             images=lambda n: self.data.load_image(train[n]))
+        self.far_faces = 0
+        if not masked:
+            # pieces of the fused surface that reach the inner box's faces apart from the main one are walls and
+            # furniture cut off by the box (bonsai: 5 slabs at x = +-1, 17% of the surface): far-field content,
+            # kept behind the connected surface with the rest of the far field
+            cut = box_cut_pieces(surface, box, 2.0 * report.voxel)
+            if cut.any():
+                surface = append_scene(sub_scene(surface, ~cut), sub_scene(surface, cut))
+                self.far_faces = int(cut.sum())
+                report.faces, report.vertices = report.faces - self.far_faces, int(surface.num_vertices)
+                report.notes.append(f"{self.far_faces} faces of the surface in pieces cut off by the inner box's "
+                                    "faces moved to the far field")
         far = far_field_mask(soup, box) if not masked else np.zeros(soup.num_faces, bool)
         if far.any():
             surface = append_scene(surface, sub_scene(soup, far))
             report.notes.append(f"{int(far.sum())} soup faces outside the inner box kept as the far field")
-        self.far_faces = int(far.sum())
+        self.far_faces += int(far.sum())
         if not masked and cfg.background_sphere:
             # behind it all, a background sphere coloured from the photos closes the gaps (trisplat.scene.background)
             from trisplat.scene.background import background_radius, background_sphere
@@ -878,7 +892,7 @@ class Trainer:
             surface = sub_scene(scene, np.arange(scene.num_faces) < scene.num_faces - self.far_faces)
             st = mesh_statistics(surface.positions.numpy(), surface.faces.numpy()).to_dict()
             extra["mesh"] = {**metrics.get("mesh", {}), **{k: st[k] for k in metrics.get("mesh", {}) if k in st},
-                             "of": "the connected surface (without the far-field soup)"}
+                             "of": "the connected surface (without the far-field layer)"}
             extra["surface_faces"] = surface.num_faces
         view_independent = None  # measured only when the file is far below the model (see health.verdict)
         if metrics.get("file_psnr") is not None and metrics.get("psnr") is not None and \
