@@ -103,6 +103,28 @@ def test_health_detects_face_and_psnr_collapses():
     assert h.observe_psnr(9, float("nan")) is None
     h.restart(100, 50_000)  # the connected surface: a new reference
     assert h.peak_faces == 50_000 and h.best_psnr is None
+    assert h.soup_best_psnr == 25.0 and h.soup_best_step == 6  # the soup's best, kept for the verdict
+
+
+def test_verdict_judges_what_the_switch_lost_against_the_soup():
+    """The watch restarts at the switch (a surface is its own reference), so a surface fused far below its soup is
+    judged at the end: a collapse's distance (3 dB) below the soup's best is a problem; bonsai's usual 1.5 dB is not."""
+    def run(soup, surface):
+        h = RunHealth()
+        for step, psnr in enumerate(soup):
+            h.observe_psnr(step, psnr)
+        h.restart(len(soup), 100_000)
+        for step, psnr in enumerate(surface, start=len(soup)):
+            assert h.observe_psnr(step, psnr) is None  # after the switch, a surface steady at its own level
+        return verdict(h, surface[-1], 1.0)
+
+    assert run([19.4, 23.3, 25.15, 25.48], [23.96, 23.53, 23.45])["ok"]  # bonsai F
+    v = run([19.4, 23.3, 25.15, 25.48], [22.0, 22.3, 22.2])
+    assert not v["ok"] and "3.2 dB below the soup" in v["problems"][0] and "25.48 dB at step 3" in v["problems"][0]
+    h = RunHealth()  # a run that never switched, or a resumed run from before the soup's best was kept: nothing said
+    h.observe_psnr(0, 25.0)
+    v = verdict(h, 21.0, 1.0)
+    assert len(v["problems"]) == 1 and v["problems"][0].startswith("the final test PSNR")
 
 
 def test_verdict_refuses_a_bad_result_and_forgives_a_recovered_collapse():
