@@ -250,7 +250,7 @@ def test_pieces_cut_off_by_the_inner_box_are_told_apart_from_the_scenes_own():
     import trimesh
 
     from trisplat.scene.model import TriangleScene
-    from trisplat.train.switch import box_cut_pieces, inner_box
+    from trisplat.train.switch import box_cut_pieces, cut_pieces_last, inner_box
 
     def scene_of(meshes):
         mesh = trimesh.util.concatenate(meshes)
@@ -274,3 +274,15 @@ def test_pieces_cut_off_by_the_inner_box_are_told_apart_from_the_scenes_own():
     # a tolerance below the corner's gap keeps it; one piece is never cut, whatever it reaches
     assert cut[n[2]:n[3]].all() and not box_cut_pieces(scene_of(parts), inner_box(), 0.001)[n[2]:n[3]].any()
     assert not box_cut_pieces(scene_of([slab]), inner_box(), 0.01).any()
+    # the trainer's order: the scene's own piece(s) first, then the cut-off pieces (the far field's first rows), each
+    # with its own vertices, the same triangles
+    whole = scene_of(parts)
+    moved, n_cut = cut_pieces_last(whole, inner_box(), 0.01)
+    assert n_cut == n[3] - n[1] and moved.num_faces == whole.num_faces and moved.num_vertices == whole.num_vertices
+    tri = lambda sc: sc.positions[sc.faces.long()].numpy()  # noqa: E731
+    keep = np.r_[0:n[1], n[3]:n[4]]
+    np.testing.assert_array_equal(tri(moved)[:len(keep)], tri(whole)[keep])
+    np.testing.assert_array_equal(tri(moved)[len(keep):], tri(whole)[n[1]:n[3]])
+    main_vertices = int(moved.faces[:len(keep)].max()) + 1
+    assert main_vertices == len(main.vertices) + len(inside.vertices)
+    assert int(moved.faces[len(keep):].min()) == main_vertices

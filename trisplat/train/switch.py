@@ -548,6 +548,15 @@ def box_cut_pieces(scene: TriangleScene, box: np.ndarray, tolerance: float) -> n
     return touches[label]
 
 
+def cut_pieces_last(surface: TriangleScene, box: np.ndarray, tolerance: float) -> tuple[TriangleScene, int]:
+    """`surface` with the pieces that box_cut_pieces flags moved to its last face rows (their vertices to the last
+    vertex rows), and how many faces moved: the far-field layer's first rows."""
+    cut = box_cut_pieces(surface, box, tolerance)
+    if not cut.any():
+        return surface, 0
+    return append_scene(sub_scene(surface, ~cut), sub_scene(surface, cut)), int(cut.sum())
+
+
 def sub_scene(scene: TriangleScene, face_mask: np.ndarray) -> TriangleScene:
     """The faces where face_mask [F] is True with the vertices they use (re-indexed), SH, opacity logits, floor."""
     faces = scene.faces.detach().cpu().numpy().astype(np.int64)[np.asarray(face_mask, bool)]

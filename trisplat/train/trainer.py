@@ -505,7 +505,7 @@ class Trainer:
         from trisplat.train.switch import (
             SurfaceConfig,
             append_scene,
-            box_cut_pieces,
+            cut_pieces_last,
             far_field_mask,
             inner_box,
             soup_to_surface,
@@ -545,11 +545,10 @@ class Trainer:
             # pieces of the fused surface that reach the inner box's faces apart from the main one are walls and
             # furniture cut off by the box (bonsai: 5 slabs at x = +-1, 17% of the surface): far-field content,
             # kept behind the connected surface with the rest of the far field
-            cut = box_cut_pieces(surface, box, 2.0 * report.voxel)
-            if cut.any():
-                surface = append_scene(sub_scene(surface, ~cut), sub_scene(surface, cut))
-                self.far_faces = int(cut.sum())
-                report.faces, report.vertices = report.faces - self.far_faces, int(surface.num_vertices)
+            surface, self.far_faces = cut_pieces_last(surface, box, 2.0 * report.voxel)
+            if self.far_faces:
+                report.faces = surface.num_faces - self.far_faces
+                report.vertices = int(surface.faces[:report.faces].max()) + 1  # the cut pieces' vertices come after
                 report.notes.append(f"{self.far_faces} faces of the surface in pieces cut off by the inner box's "
                                     "faces moved to the far field")
         far = far_field_mask(soup, box) if not masked else np.zeros(soup.num_faces, bool)
