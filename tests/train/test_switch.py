@@ -242,10 +242,9 @@ def test_the_trainers_truncation_is_wider_for_objects_unless_given():
             TrainConfig(surface_truncation=bad)
 
 
-
 def test_pieces_cut_off_by_the_inner_box_are_told_apart_from_the_scenes_own():
     """An unbounded capture's surface is fused in the inner box: the near ends of walls and furniture that the box
-    cuts off come out as slabs at its faces (bonsai: five, 17% of the fused faces). Those go to the far field; the
+    cuts off come out as slabs at its faces (bonsai: five, 17-32% of the fused faces). Those go to the far field; the
     largest piece stays even where it reaches the box (a floor), and so does a piece wholly inside (an object)."""
     import trimesh
 

@@ -543,7 +543,7 @@ class Trainer:
         self.far_faces = 0
         if not masked:
             # pieces of the fused surface that reach the inner box's faces apart from the main one are walls and
-            # furniture cut off by the box (bonsai: 5 slabs at x = +-1, 17% of the surface): far-field content,
+            # furniture cut off by the box (bonsai: 5 pieces at x = +-1 and y = 1, 17-32% of the fused faces): far-field content,
             # kept behind the connected surface with the rest of the far field
             surface, self.far_faces = cut_pieces_last(surface, box, 2.0 * report.voxel)
             if self.far_faces:
