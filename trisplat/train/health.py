@@ -138,8 +138,8 @@ def verdict(health: RunHealth, final_psnr: float | None, coverage: float | None,
             final_psnr < health.best_psnr - health.max_psnr_drop:
         problems.append(f"the final test PSNR ({final_psnr:.2f} dB) is more than {health.max_psnr_drop:g} dB below "
                         f"the best seen during training ({health.best_psnr:.2f} dB)")
-    # the switch: a hard, connected surface scores below the soft soup it is fused from (bonsai and fox: 1.1-1.6 dB
-    # at the first evaluation after it, 2.6 at worst in docs/benchmarks.md); a surface whose best is a collapse's
+    # the switch: a hard, connected surface scores below the soft soup it is fused from (bonsai and fox: 1.3-1.9 dB
+    # at the first evaluation after it in the runs of docs/benchmarks.md, 2.6 at worst); a surface whose best is a collapse's
     # distance below the soup's best lost the scene at the switch, which the watch (restarted there) cannot see
     if health.soup_best_psnr is not None and health.best_psnr is not None and \
             health.best_psnr < health.soup_best_psnr - health.max_psnr_drop:
