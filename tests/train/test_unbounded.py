@@ -67,6 +67,38 @@ def test_default_run_on_a_room_keeps_its_faces_walls_and_psnr(room, tmp_path):
     assert m["health"]["ok"], m["health"]
     # no per-photo colour corrections by default (config.exposure), so no exposure-matched score
     assert not (run_dir / "exposure.json").exists() and "psnr_exposure_matched" not in m
+    _check_scores_by_layer(trainer, m["psnr_by_layer"])
+
+
+def _check_scores_by_layer(trainer, by_layer):
+    """The run's PSNR by layer: its pixels are those the layer's rows of the face table show (the surface's do not
+    change when the far-field layer is dropped), and the layers' errors pool to the whole render's."""
+    from trisplat.eval.layers import LAYERS, layer_labels
+    from trisplat.render import rasterize_hard
+    from trisplat.train.switch import sub_scene
+
+    scene = trainer.ts.to_scene()
+    near = sub_scene(scene, np.arange(scene.num_faces) < scene.num_faces - trainer.far_faces)
+    pixels, sq = np.zeros(len(LAYERS)), np.zeros(len(LAYERS))
+    for i in trainer.data.test_indices:
+        cam = trainer.data.cameras[int(i)]
+        args = (torch.as_tensor(cam.world_to_camera, dtype=torch.float32), torch.as_tensor(cam.K, dtype=torch.float32),
+                cam.width, cam.height, trainer.background)
+        out = rasterize_hard(scene.positions, scene.faces, scene.sh, *args, linear_light=scene.linear_light)
+        alone = rasterize_hard(near.positions, near.faces, near.sh, *args, linear_light=scene.linear_light)
+        lab = layer_labels(out.face_id.numpy(), scene.num_faces, trainer.far_faces, trainer.background_faces)
+        surface = lab == LAYERS.index("surface")
+        np.testing.assert_allclose(out.rgb.numpy()[surface], alone.rgb.numpy()[surface], atol=1e-5)
+        assert (alone.face_id.numpy()[lab == LAYERS.index("far_field")] != out.face_id.numpy()[
+            lab == LAYERS.index("far_field")]).all()
+        err = ((out.rgb.clamp(0, 1).numpy() - np.asarray(trainer.data.load_image(int(i)))) ** 2).mean(-1)
+        pixels += np.bincount(lab.reshape(-1), minlength=len(LAYERS))
+        sq += np.bincount(lab.reshape(-1), weights=err.reshape(-1), minlength=len(LAYERS))
+    assert {"surface", "far_field", "background_sphere"} <= set(by_layer)  # the room shows all three
+    for k, name in enumerate(LAYERS):
+        if pixels[k]:
+            assert by_layer[name]["pixels"] == pytest.approx(pixels[k] / pixels.sum(), abs=1e-9)
+            assert by_layer[name]["psnr"] == pytest.approx(-10 * np.log10(sq[k] / pixels[k]), abs=1e-3)
 
 
 def test_a_forced_collapse_is_rolled_back_and_said(room, tmp_path):

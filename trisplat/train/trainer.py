@@ -844,20 +844,32 @@ class Trainer:
         """Fraction of the test pixels the photos show content in (pixel centres; where a photo has alpha, its
         pixels with alpha > 0.5, else all) that the final opaque mesh covers. An object capture's background is
         not a hole: counting it made lego's mesh 'cover' 30% of its test views."""
+        return self.test_pixels()[0]
+
+    @torch.no_grad()
+    def test_pixels(self) -> tuple[float | None, dict | None]:
+        """test_coverage, and for a run with a far-field layer the test PSNR by layer (trisplat.eval.layers: the
+        connected surface, the far field, the background sphere; the opaque mesh at one sample per pixel centre,
+        pooled over the test views), from one render of each test view."""
+        from trisplat.eval.layers import LayerScores, layer_labels
         from trisplat.render import rasterize_hard
 
         scene, covered, total = self.ts.to_scene(), 0.0, 0.0
+        layers = LayerScores() if self.far_faces else None
         for i in self.data.test_indices:
             cam = self.data.cameras[int(i)]
             out = rasterize_hard(scene.positions, scene.faces, scene.sh, torch.as_tensor(cam.world_to_camera,
                                  dtype=torch.float32), torch.as_tensor(cam.K, dtype=torch.float32), cam.width,
-                                 cam.height, self.background, near=self.cfg.near)
+                                 cam.height, self.background, near=self.cfg.near, linear_light=scene.linear_light)
             hit = (out.alpha > 0.5).numpy()
             alpha = self.data.load_alpha(int(i))
             content = np.ones_like(hit) if alpha is None else np.asarray(alpha) > 0.5
             covered += float((hit & content).sum())
             total += float(content.sum())
-        return covered / total if total else None
+            if layers is not None:
+                labels = layer_labels(out.face_id.numpy(), scene.num_faces, self.far_faces, self.background_faces)
+                layers.add(labels, out.rgb.clamp(0, 1).numpy(), np.asarray(self.data.load_image(int(i))))
+        return (covered / total if total else None), (None if layers is None else layers.to_dict())
 
     def _misfit_warnings(self) -> list[str]:
         """Training photos whose learned colour correction no camera makes (trisplat.train.exposure.Exposure.misfits):
@@ -877,8 +889,9 @@ class Trainer:
         the final PSNR against the best seen; with a far field, the connected surface's own statistics."""
         from trisplat.train.health import MAX_FILE_LOSS, add_to_report, verdict
 
-        coverage = self.test_coverage()
+        coverage, by_layer = self.test_pixels()
         extra = {"coverage": coverage, "switch_s": self.switch_s, "far_field_faces": self.far_faces,
+                 "psnr_by_layer": by_layer,
                  "background_faces": self.background_faces,
                  "exposure": None if self.exposure is None else self.exposure.summary(),
                  "intrinsics": None if self.intrinsics is None else self.intrinsics.summary(),
