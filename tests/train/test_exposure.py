@@ -66,6 +66,14 @@ def test_the_report_shows_problems_and_warnings(tmp_path):
     assert "not trustworthy" in text and "90.0%" in text
     assert "photo &lt;b&gt;x&lt;/b&gt; does not fit" in text  # escaped
     assert text.index("</h1>") < text.index("health-warnings") < text.index("<p>scores")
+    assert "id='layers'" not in text  # no far field, no table of layers
+    page.write_text("<html><body><h1>Run</h1><p>scores</p></body></html>")
+    add_to_report(page, verdict(RunHealth(), 25.0, 1.0), {"surface": {"pixels": 0.316, "psnr": 23.28},
+                                                          "far_field": {"pixels": 0.684, "psnr": 24.1}})
+    text = page.read_text()
+    assert "<td>connected surface</td><td>31.6%</td><td>23.28 dB</td>" in text
+    assert "<td>far-field layer</td><td>68.4%</td><td>24.10 dB</td>" in text
+    assert text.index("</h1>") < text.index("id='layers'") < text.index("<p>scores")
 
 
 def test_one_photo_per_step_moves_only_that_photos_correction_and_learns_the_gains():

@@ -68,6 +68,7 @@ def test_default_run_on_a_room_keeps_its_faces_walls_and_psnr(room, tmp_path):
     # no per-photo colour corrections by default (config.exposure), so no exposure-matched score
     assert not (run_dir / "exposure.json").exists() and "psnr_exposure_matched" not in m
     _check_scores_by_layer(trainer, m["psnr_by_layer"])
+    assert "id='layers'" in (run_dir / m["report"]).read_text()  # and the report shows them
 
 
 def _check_scores_by_layer(trainer, by_layer):

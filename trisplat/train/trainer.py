@@ -914,7 +914,7 @@ class Trainer:
         extra["health"] = verdict(self.health, metrics.get("psnr"), coverage, metrics.get("file_psnr"),
                                   self._misfit_warnings(), view_independent)
         if metrics.get("report"):
-            add_to_report(self.run_dir / metrics["report"], extra["health"])
+            add_to_report(self.run_dir / metrics["report"], extra["health"], by_layer)
         return extra
 
 
