@@ -867,8 +867,8 @@ class Trainer:
             covered += float((hit & content).sum())
             total += float(content.sum())
             if layers is not None:
-                labels = layer_labels(out.face_id.numpy(), scene.num_faces, self.far_faces, self.background_faces)
-                layers.add(labels, out.rgb.clamp(0, 1).numpy(), np.asarray(self.data.load_image(int(i))))
+                labels = layer_labels(out.face_id.cpu().numpy(), scene.num_faces, self.far_faces, self.background_faces)
+                layers.add(labels, out.rgb.clamp(0, 1).cpu().numpy(), np.asarray(self.data.load_image(int(i))))
         return (covered / total if total else None), (None if layers is None else layers.to_dict())
 
     def _misfit_warnings(self) -> list[str]:
