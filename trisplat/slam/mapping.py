@@ -82,8 +82,9 @@ def keyframe_loss(smap: SlamMap, kf: Keyframe, K: torch.Tensor, sigma: float, cf
 
 def refine(smap: SlamMap, keyframes: list[Keyframe], K: np.ndarray, sigma: float, iters: int, cfg: MapConfig,
            rng: np.random.Generator, sigma_end: float | None = None, window: int | None = None) -> float:
-    """Refine positions, colours and opacities over the newest `window` keyframes (all when window is 0);
-    sigma moves linearly to sigma_end when given (the soft-to-hard schedule). Returns the last loss."""
+    """Refine positions, colours and opacities over the newest `window` keyframes (half the iterations on the newest),
+    or over all of them in shuffled rounds when window is 0; sigma moves linearly to sigma_end when given (the
+    soft-to-hard schedule). Returns the last loss."""
     if smap.num_faces == 0 or not keyframes or iters <= 0:
         return float("nan")
     sc = smap.scene
@@ -98,8 +99,17 @@ def refine(smap: SlamMap, keyframes: list[Keyframe], K: np.ndarray, sigma: float
     pool = keyframes[-win:] if win > 0 else keyframes
     Kt = torch.as_tensor(K, dtype=torch.float64)
     last = float("nan")
+    # A window (mapping while tracking) gives half the iterations to its newest keyframe, which nothing has fitted
+    # yet. Over every keyframe (window 0: the final refinement) each keyframe counts alike: the keyframes are visited
+    # in shuffled rounds, so each one is fitted once before any is fitted twice.
+    order: list[int] = []
     for it in range(iters):
-        kf = pool[-1] if (it % 2 == 0 or len(pool) == 1) else pool[int(rng.integers(len(pool)))]
+        if win > 0:
+            kf = pool[-1] if (it % 2 == 0 or len(pool) == 1) else pool[int(rng.integers(len(pool)))]
+        else:
+            if not order:
+                order = [int(i) for i in rng.permutation(len(pool))]
+            kf = pool[order.pop()]
         sig = sigma if sigma_end is None else sigma + (sigma_end - sigma) * it / max(1, iters - 1)
         loss = keyframe_loss(smap, kf, Kt, sig, cfg)
         if cfg.w_equiangular > 0:
