@@ -47,5 +47,10 @@ def main(argv: list[str]) -> int:
           f"1/{args.slam.downscale}; reference poses: {'yes' if stream.has_reference else 'no'}", flush=True)
     for w in stream.warnings:
         print(f"warning: {w}", flush=True)
-    run_slam(stream, args.out, args.slam, resume=args.resume, force=args.force)
+    from trisplat.slam.warmup import warm_up
+
+    print("preparing the kernels (compiled once, then cached) ...", flush=True)
+    compile_s = warm_up(args.slam)
+    print(f"kernels ready in {compile_s:.1f} s (not counted in the run's frames/s)", flush=True)
+    run_slam(stream, args.out, args.slam, resume=args.resume, force=args.force, compile_s=compile_s)
     return 0

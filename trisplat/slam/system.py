@@ -378,8 +378,10 @@ def track_with_relocalisation(state: SlamState, pyr, cfg: SlamConfig, n: int, la
 
 
 def run_slam(stream: RGBDStream, out: Path, cfg: SlamConfig, resume: bool = False, log=print,
-             force: bool = False) -> dict:
+             force: bool = False, compile_s: float | None = None) -> dict:
     """Run SLAM over the stream, writing RUN outputs; returns the metrics dict (also RUN/metrics.json).
+    compile_s: seconds the caller spent compiling the kernels beforehand (trisplat.slam.warmup), recorded as
+    metrics.json `compile_seconds`; not part of the run's frames/s.
 
     The run rules of `trisplat train` (trisplat.run): a non-empty `out` is refused unless `force` (it is then moved
     aside, never deleted) or `resume`; a resume keeps the settings that number the frames (RESUME_FIXED); config,
@@ -531,7 +533,7 @@ def run_slam(stream: RGBDStream, out: Path, cfg: SlamConfig, resume: bool = Fals
         state.final_s = time.time() - tf
         state.refined = True
         checkpoint(len(ids))  # before the outputs: a failure there resumes straight to them, not to a second refinement
-    metrics = write_outputs(stream, out, cfg, state, ids, keyframes, slam_s, state.final_s, log)
+    metrics = write_outputs(stream, out, cfg, state, ids, keyframes, slam_s, state.final_s, log, compile_s)
     atomic_write_text(out / STATE, json.dumps({"finished": True, "step": len(ids), "total_steps": len(ids),
                                                "refined": True}))
     return metrics
@@ -614,7 +616,8 @@ def map_surface(smap: SlamMap, keyframes: list[Keyframe], stream: RGBDStream, cf
     return surface.positions.numpy().astype(np.float64), surface.faces.numpy().astype(np.int64), cols, info
 
 
-def write_outputs(stream, out: Path, cfg: SlamConfig, state: SlamState, ids, keyframes, slam_s, final_s, log) -> dict:
+def write_outputs(stream, out: Path, cfg: SlamConfig, state: SlamState, ids, keyframes, slam_s, final_s, log,
+                  compile_s: float | None = None) -> dict:
     from trisplat.io import export_mesh
     from trisplat.io.model_ply import save_model_ply
     from trisplat.mesh.cleanup import face_components
@@ -660,6 +663,7 @@ def write_outputs(stream, out: Path, cfg: SlamConfig, state: SlamState, ids, key
         "loop_closures": [[int(state.keyframe_ids[e.i]), int(state.keyframe_ids[e.j])] for e in state.edges if e.loop],
         "held_out": held_map, "held_out_mesh": held_mesh,
         "eval_seconds": eval_s,  # scoring the held-out frames (not part of SLAM: the bench reports it apart)
+        "compile_seconds": compile_s,  # the kernels compiled (or loaded) before the run (trisplat.slam.warmup)
     }
     ref = [stream.frames[i].reference_c2w for i in ids]
     have = [k for k, r in enumerate(ref) if r is not None]
