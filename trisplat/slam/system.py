@@ -94,6 +94,11 @@ class SlamConfig:
     mesh_resolution: int = 512
     """'surface' mesh: voxels along the longest side of the fused box (at most twice the processed frames' longer
     side, and fewer when the grid would pass trisplat.train.switch's voxel cap)"""
+    mesh_min_piece: float = 0.01
+    """'surface' mesh: pieces with fewer faces than this x the largest piece's are dropped as floaters (unitless; the
+    training switch drops below 0.02). A room's chairs and the things on its tables can stand apart from the floor
+    in the fused surface: on 7-Scenes, two chair pieces of 1.1% and 1.3% of the largest, which 0.02 dropped
+    (largest piece 100% -> 97.7%, held-out mesh PSNR 18.07 -> 18.28 dB, uncovered pixels 3.7% -> 2.0%)"""
     track: TrackConfig = field(default_factory=TrackConfig)
     spawn: SpawnConfig = field(default_factory=SpawnConfig)
     mapping: MapConfig = field(default_factory=MapConfig)
@@ -605,7 +610,7 @@ def map_surface(smap: SlamMap, keyframes: list[Keyframe], stream: RGBDStream, cf
             return smap.render(cams[n].world_to_camera, K, W, H, cfg.sigma_end)
 
     scfg = SurfaceConfig(resolution=int(min(cfg.mesh_resolution, 2 * max(W, H))), empty_is_free=False,
-                         unseen_faces="drop")
+                         unseen_faces="drop", min_component_fraction=cfg.mesh_min_piece)
     surface, rep = soup_to_surface(smap.scene.detached(), cams, render, None, scfg,
                                    lambda m: log(f"mesh: {m}", flush=True),
                                    images=lambda n: keyframes[n].rgb.numpy())
