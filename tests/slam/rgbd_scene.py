@@ -7,10 +7,8 @@ import math
 from pathlib import Path
 
 import numpy as np
-from trisplat.cameras import Camera
 from trisplat.synth.orbit import intrinsics, look_at
-from trisplat.synth.raycast import raycast_view
-from trisplat.synth.rgbd_room import write_sevenscenes_frame, write_sevenscenes_intrinsics
+from trisplat.synth.rgbd_room import write_noiseless_sequence
 from trisplat.synth.scenes import demo_mesh
 
 W, H, N = 160, 120, 14
@@ -32,15 +30,8 @@ def write_rgbd_sequence(root: Path, width: int = W, height: int = H, n: int = N,
                         path: list[np.ndarray] | None = None) -> Path:
     """Ray-cast `n` frames of demo_mesh(seed=0) along path_w2c (or the given world-to-camera path) into `root`
     (7-Scenes layout); returns `root`."""
-    root.mkdir(parents=True, exist_ok=True)
-    mesh = demo_mesh(seed=0)
-    K = intrinsics(width, height, FOV_DEG)
-    for k, w2c in enumerate(path_w2c(n) if path is None else path):
-        v = raycast_view(mesh, Camera(w2c, K, width, height), background=(1.0, 1.0, 1.0))
-        write_sevenscenes_frame(root, k, (v.rgba[..., :3] * 255 + 0.5).astype(np.uint8),
-                                np.round(v.depth * 1000).astype(np.uint16), np.linalg.inv(w2c))
-    write_sevenscenes_intrinsics(root, K)
-    return root
+    return write_noiseless_sequence(root, demo_mesh(seed=0), path_w2c(n) if path is None else path,
+                                    intrinsics(width, height, FOV_DEG), width, height)
 
 
 def loop_path_w2c(n: int = 25) -> list[np.ndarray]:

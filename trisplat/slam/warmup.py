@@ -13,8 +13,6 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
-
 from trisplat.slam.system import SlamConfig
 
 WIDTH, HEIGHT, FRAMES = 80, 60, 8
@@ -23,23 +21,15 @@ WIDTH, HEIGHT, FRAMES = 80, 60, 8
 def write_capture(root: Path, width: int = WIDTH, height: int = HEIGHT, frames: int = FRAMES) -> Path:
     """`frames` frames of the built-in demo scene (trisplat.synth.scenes.demo_mesh) ray-cast along a short arc that
     ends where it began, in the 7-Scenes layout, into `root`."""
-    from trisplat.cameras import Camera
     from trisplat.synth.orbit import intrinsics, look_at
-    from trisplat.synth.raycast import raycast_view
-    from trisplat.synth.rgbd_room import write_sevenscenes_frame, write_sevenscenes_intrinsics
+    from trisplat.synth.rgbd_room import write_noiseless_sequence
     from trisplat.synth.scenes import demo_mesh
 
-    root.mkdir(parents=True, exist_ok=True)
-    mesh = demo_mesh(seed=0)
-    K = intrinsics(width, height, 60.0)
+    path = []
     for k in range(frames):
         th = math.radians(-30 + 8 * math.sin(math.pi * k / max(frames - 1, 1)))  # out and back
-        w2c = look_at((2.3 * math.cos(th), 2.3 * math.sin(th), 1.1), (0.0, 0.0, 0.25))
-        v = raycast_view(mesh, Camera(w2c, K, width, height), background=(1.0, 1.0, 1.0))
-        write_sevenscenes_frame(root, k, (v.rgba[..., :3] * 255 + 0.5).astype(np.uint8),
-                                np.round(v.depth * 1000).astype(np.uint16), np.linalg.inv(w2c))
-    write_sevenscenes_intrinsics(root, K)
-    return root
+        path.append(look_at((2.3 * math.cos(th), 2.3 * math.sin(th), 1.1), (0.0, 0.0, 0.25)))
+    return write_noiseless_sequence(root, demo_mesh(seed=0), path, intrinsics(width, height, 60.0), width, height)
 
 
 def warm_up(cfg: SlamConfig, log=print) -> float:

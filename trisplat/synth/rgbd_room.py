@@ -215,6 +215,21 @@ def write_sevenscenes_frame(out: Path, k: int, rgb: np.ndarray, mm: np.ndarray, 
     np.savetxt(out / f"frame-{k:06d}.pose.txt", c2w)
 
 
+def write_noiseless_sequence(root: Path, mesh, path_w2c, K: np.ndarray, width: int, height: int) -> Path:
+    """Ray-cast `mesh` (vertex colours, trisplat.synth.raycast) from each world-to-camera of `path_w2c` into `root`
+    in the 7-Scenes layout: exact depth in millimetres, white where nothing is hit, no sensor noise. Returns root."""
+    from trisplat.cameras import Camera
+
+    root = Path(root)
+    root.mkdir(parents=True, exist_ok=True)
+    for k, w2c in enumerate(path_w2c):
+        v = raycast_view(mesh, Camera(w2c, K, width, height), background=(1.0, 1.0, 1.0))
+        write_sevenscenes_frame(root, k, (v.rgba[..., :3] * 255 + 0.5).astype(np.uint8),
+                                np.round(v.depth * 1000).astype(np.uint16), np.linalg.inv(w2c))
+    write_sevenscenes_intrinsics(root, K)
+    return root
+
+
 def write_sevenscenes_intrinsics(out: Path, K: np.ndarray) -> None:
     """camera-intrinsics.txt from K [3,3] (pixel centres at +0.5): integer-centred, as 7-Scenes' (the reader adds
     0.5 back)."""
