@@ -74,6 +74,9 @@ class SlamBenchArgs:
     tsdf_voxel: float = 0.01
     """TSDF voxel edge (metres) of the Open3D baseline's mesh and of the reference mesh (truncation 4 voxels; at most
     400 voxels a side, coarser beyond)"""
+    colour_registration: str = "auto"
+    """colour onto the depth camera ('auto', 'off' or 'SCALE,DX,DY', as `trisplat slam`'s): trisplat measures it
+    itself inside its run; Open3D and the held-out scoring get the bench's measurement, so all see the same colour"""
 
 
 def _split(argv: list[str]) -> tuple[list[str], list[str]]:
@@ -156,7 +159,8 @@ def _run_trisplat(args: SlamBenchArgs, run_dir: Path, extra: list[str]) -> dict:
     from trisplat.commands.slam import main as slam_main
 
     argv = [str(args.capture), "--out", str(run_dir), "--slam.downscale", str(args.downscale),
-            "--slam.max-frames", str(args.max_frames), "--slam.stride", str(args.stride)]
+            "--slam.max-frames", str(args.max_frames), "--slam.stride", str(args.stride),
+            "--colour-registration", args.colour_registration]
     if args.depth_scale is not None:
         argv += ["--depth-scale", str(args.depth_scale)]
     argv += extra
@@ -167,12 +171,12 @@ def _run_trisplat(args: SlamBenchArgs, run_dir: Path, extra: list[str]) -> dict:
     return json.loads((run_dir / "metrics.json").read_text())
 
 
-def _run_open3d(args: SlamBenchArgs, run_dir: Path) -> dict:
+def _run_open3d(args: SlamBenchArgs, run_dir: Path, registration: str) -> dict:
     from trisplat.slam import open3d_baseline
 
     return open3d_baseline.run(args.capture, run_dir, args.downscale, args.max_frames, reference_mesh=False,
                                stride=args.stride, depth_scale=args.depth_scale, log=lambda *a, **k: None,
-                               voxel_m=args.tsdf_voxel)
+                               voxel_m=args.tsdf_voxel, colour_registration=registration)
 
 
 def main(argv: list[str]) -> int:
@@ -191,7 +195,12 @@ def main(argv: list[str]) -> int:
     from trisplat.data.rgbd_stream import open_stream
     from trisplat.eval.geometry import load_surface
 
+    from trisplat.data.colour_registration import apply_colour_registration
+
     stream = open_stream(args.capture, depth_scale=args.depth_scale)
+    reg = apply_colour_registration(stream, args.colour_registration)  # the held-out photos and Open3D's colour
+    print(reg.describe(stream.K), flush=True)
+    registration = f"{reg.scale!r},{reg.shift[0]!r},{reg.shift[1]!r}" if reg.applied else "off"
     ids = open3d_baseline.frame_ids(len(stream), args.max_frames, args.stride)
     ref_c2w = [stream.frames[i].reference_c2w for i in ids]
     stamps = [stream.frames[i].stamp if stream.frames[i].stamp is not None else i / args.fps for i in ids]
@@ -210,6 +219,7 @@ def main(argv: list[str]) -> int:
     table = BenchTable("slam", COLUMNS)
     held_frames = list(range(0, len(ids), 10))  # every 10th frame, unless trisplat's run names its held-out frames
     details: dict = {"capture": str(args.capture), "frames": len(ids), "stride": args.stride,
+                     "colour_registration": reg.as_dict(),
                      "downscale": args.downscale, "resolution": [W, H], "trisplat_slam_extra_args": extra,
                      "reference_tsdf_mesh": ref_info, "methods": {}}
     for method in args.methods:
@@ -219,7 +229,8 @@ def main(argv: list[str]) -> int:
         print(f"== {method}: {len(ids)} frames at {W}x{H}", flush=True)
         load0 = os.getloadavg()[0]
         t0, c0 = time.perf_counter(), time.process_time()
-        metrics = _run_trisplat(args, run_dir, extra) if method == "trisplat" else _run_open3d(args, run_dir)
+        metrics = (_run_trisplat(args, run_dir, extra) if method == "trisplat"
+                   else _run_open3d(args, run_dir, registration))
         wall, cpu = time.perf_counter() - t0, time.process_time() - c0
         load1 = os.getloadavg()[0]
         scores = score_run(run_dir, ref_c2w, reference, args.chamfer_samples, stamps)
@@ -264,7 +275,9 @@ def main(argv: list[str]) -> int:
         "each method's mesh (vertex colours, unlit, 2x2 samples, black where empty) at its own poses of the same frames "
         "(trisplat's held-out frames when trisplat ran; Open3D fused every frame, those included). Open3D: "
         "RGB-D odometry (hybrid term) frame to frame + UniformTSDFVolume (trisplat.slam.open3d_baseline). "
-        "Load = 1-minute load average before and after each method (the machine may be shared)."
+        "Load = 1-minute load average before and after each method (the machine may be shared). "
+        f"Colour: {reg.describe(stream.K)} (trisplat.data.colour_registration; the held-out photos both methods are "
+        "scored on are read the same way)."
         + (f" trisplat slam extra options: `{' '.join(extra)}`." if extra else ""))
     (args.out / "slam_details.json").write_text(json.dumps(details, indent=2, default=float))
     md = table.write(args.out, "trisplat bench slam " + " ".join(argv))

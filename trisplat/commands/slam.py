@@ -29,6 +29,10 @@ class SlamArgs:
     they differ from the saved run's (they number its frames); --slam.max-frames may grow"""
     force: bool = False
     """start over in a directory that holds a run (the old run is moved aside, never deleted)"""
+    colour_registration: str = "auto"
+    """how colour maps onto the depth camera: 'auto' measures it from the frames (colour edges against depth
+    outlines; 7-Scenes' Kinect v1 colour is a 0.9x zoom of its depth) and resamples colour only where that clearly
+    helps; 'off' reads colour as it is; 'SCALE,DX,DY' gives it (colour focal / depth focal, shift in pixels)"""
     slam: SlamConfig = field(default_factory=SlamConfig)
 
 
@@ -47,6 +51,9 @@ def main(argv: list[str]) -> int:
           f"1/{args.slam.downscale}; reference poses: {'yes' if stream.has_reference else 'no'}", flush=True)
     for w in stream.warnings:
         print(f"warning: {w}", flush=True)
+    from trisplat.data.colour_registration import apply_colour_registration
+
+    print(apply_colour_registration(stream, args.colour_registration).describe(stream.K), flush=True)
     from trisplat.slam.warmup import warm_up
 
     print("preparing the kernels (compiled once, then cached) ...", flush=True)

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from trisplat.data.colour_registration import IDENTITY, ColourRegistration, register_colour
 from trisplat.data.images import image_size, read_image
 from trisplat.data.rgbd import (
     INTRINSIC_FILES,
@@ -49,7 +50,8 @@ class StreamFrame:
 
 @dataclass
 class RGBDStream:
-    """An ordered RGB-D sequence with one pinhole camera shared by colour and depth (registered).
+    """An ordered RGB-D sequence with one pinhole camera, the depth camera's, shared by colour once registered to it
+    (load_frame resamples colour when colour_registration is applied; trisplat.data.colour_registration).
 
     K: float64 [3,3] at width x height, pixel centres at +0.5. depth_scale: metres per raw depth unit.
     """
@@ -65,6 +67,9 @@ class RGBDStream:
     resize_color: bool = False
     """colour images are resampled to width x height (the depth's size) when read (ScanNet: 1296x968 colour, 640x480
     depth)"""
+    colour_registration: ColourRegistration = IDENTITY
+    """how colour maps onto the depth camera's pixels (trisplat.data.colour_registration); load_frame resamples colour
+    into the depth camera when applied"""
 
     def __len__(self) -> int:
         return len(self.frames)
@@ -377,7 +382,8 @@ def downscale_depth(depth: np.ndarray, f: int) -> np.ndarray:
 
 def load_frame(stream: RGBDStream, i: int, downscale: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """Frame i as (rgb float32 [h,w,3] in [0,1], depth float32 [h,w] metres, 0 = invalid), downscaled by an
-    integer factor (box filter; depth edge-aware, see downscale_depth). Wrong sizes raise naming the file."""
+    integer factor (box filter; depth edge-aware, see downscale_depth); colour registered to the depth camera first
+    when the stream's colour_registration says so. Wrong sizes raise naming the file."""
     fr = stream.frames[i]
     img = read_image(fr.color_path)
     if stream.resize_color and img.shape[:2] != (stream.height, stream.width):
@@ -396,7 +402,7 @@ def load_frame(stream: RGBDStream, i: int, downscale: int = 1) -> tuple[np.ndarr
         )
     invalid = np.isin(raw, INVALID_DEPTH_RAW) | ~np.isfinite(raw)
     depth = np.where(invalid, 0.0, raw * stream.depth_scale).astype(np.float32)
-    rgb = img[..., :3].astype(np.float32) / 255.0
+    rgb = register_colour(img[..., :3], stream.colour_registration, stream.K) / 255.0
     if downscale > 1:
         rgb = _box_down(rgb, downscale).astype(np.float32)
         depth = downscale_depth(depth, downscale)

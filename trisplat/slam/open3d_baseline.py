@@ -142,13 +142,18 @@ def largest_component_fraction(o3d, mesh) -> float:
 
 
 def run(capture: Path, out: Path, downscale: int = 2, max_frames: int = 0, reference_mesh: bool = True,
-        stride: int = 1, depth_scale: float | None = None, log=print, voxel_m: float = VOXEL_M) -> dict:
+        stride: int = 1, depth_scale: float | None = None, log=print, voxel_m: float = VOXEL_M,
+        colour_registration: str = "off") -> dict:
     """Odometry + TSDF over the selected frames; writes OUT/trajectory.txt (TUM), OUT/mesh.ply, OUT/metrics.json
-    (and OUT/reference_tsdf_mesh.ply with reference_mesh); returns the metrics dict."""
+    (and OUT/reference_tsdf_mesh.ply with reference_mesh); returns the metrics dict. colour_registration: as
+    `trisplat slam --colour-registration` (the bench gives both methods the same colour)."""
+    from trisplat.data.colour_registration import apply_colour_registration
+
     o3d = _o3d()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     stream = open_stream(capture, depth_scale=depth_scale)
+    reg = apply_colour_registration(stream, colour_registration)
     ids = frame_ids(len(stream), max_frames, stride)
     n = len(ids)
     W, H = stream.size_at(downscale)
@@ -193,6 +198,7 @@ def run(capture: Path, out: Path, downscale: int = 2, max_frames: int = 0, refer
     o3d.io.write_triangle_mesh(str(out / "mesh.ply"), mesh)
     res = {
         "capture": str(capture), "frames": n, "stride": max(1, stride), "resolution": [W, H], "odometry_failures": failures,
+        "colour_registration": reg.as_dict(),
         "load_seconds": load_s, "odometry_seconds": odo_s, "tsdf_seconds": tsdf_s, "seconds": odo_s + tsdf_s,
         "mesh": {"faces": len(mesh.triangles), "vertices": len(mesh.vertices),
                  "largest_component_fraction": largest_component_fraction(o3d, mesh)},
@@ -227,8 +233,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--stride", type=int, default=1)
     ap.add_argument("--depth-scale", type=float, default=None)
     ap.add_argument("--no-reference-mesh", action="store_true")
+    ap.add_argument("--colour-registration", default="off", help="'auto', 'off' or 'SCALE,DX,DY' (trisplat slam's)")
     a = ap.parse_args(argv)
-    run(a.capture, a.out, a.downscale, a.max_frames, not a.no_reference_mesh, a.stride, a.depth_scale)
+    run(a.capture, a.out, a.downscale, a.max_frames, not a.no_reference_mesh, a.stride, a.depth_scale,
+        colour_registration=a.colour_registration)
     return 0
 
 

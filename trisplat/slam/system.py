@@ -190,7 +190,8 @@ def _fmt_s(s: float) -> str:
 
 # settings that number the frames and keyframes or change what a frame holds: a resumed run keeps the saved ones
 RESUME_FIXED = {"capture": "CAPTURE", "format": "CAPTURE", "depth_scale": "--depth-scale",
-                "stride": "--slam.stride", "downscale": "--slam.downscale"}
+                "stride": "--slam.stride", "downscale": "--slam.downscale",
+                "colour_registration": "--colour-registration"}
 
 
 def check_resume(out: Path, saved: dict, given: dict, frames_done: int, frames: int) -> None:
@@ -207,7 +208,7 @@ def check_resume(out: Path, saved: dict, given: dict, frames_done: int, frames: 
     if changed:
         what = ", ".join(f"{RESUME_FIXED[k]} ({k}: saved {saved.get(k)!r}, given {given.get(k)!r})" for k in changed)
         raise ValueError(f"{out}: --resume continues the saved run and cannot change {what}: the checkpoint's frames "
-                         "and keyframes are numbered by it. Give the saved value, or start a new run with --force.")
+                         "and keyframes are numbered (and coloured) by it. Give the saved value, or start a new run with --force.")
     if frames < frames_done:
         raise ValueError(f"{out}: --resume with --slam.max-frames {given.get('max_frames')} ends the run at {frames} "
                          f"frames, but {frames_done} are already done; give a larger --slam.max-frames (or 0: all)")
@@ -398,8 +399,11 @@ def run_slam(stream: RGBDStream, out: Path, cfg: SlamConfig, resume: bool = Fals
     ids = list(range(0, len(stream), cfg.stride))
     if cfg.max_frames:
         ids = ids[: cfg.max_frames]
+    reg = stream.colour_registration
     record = {"capture": str(Path(stream.root).resolve()), "format": stream.format,
-              "depth_scale": float(stream.depth_scale), **asdict(cfg)}
+              "depth_scale": float(stream.depth_scale),
+              "colour_registration": f"{reg.scale!r},{reg.shift[0]!r},{reg.shift[1]!r}" if reg.applied else "off",
+              **asdict(cfg)}
     ckpt = out / CHECKPOINT
     start, state = 0, None
     if resume and ckpt.is_file():
@@ -659,6 +663,7 @@ def write_outputs(stream, out: Path, cfg: SlamConfig, state: SlamState, ids, key
     eval_s = time.time() - te
     metrics = {
         "capture": str(stream.root), "format": stream.format, "frames": len(ids),
+        "colour_registration": stream.colour_registration.as_dict(),
         "resolution": list(stream.size_at(cfg.downscale)), "keyframes": len(state.keyframe_ids),
         "triangles": state.smap.num_faces, "slam_seconds": slam_s, "final_refine_seconds": final_s,
         "fps": len(ids) / max(slam_s, 1e-9), "mean_track_iterations": float(np.mean(state.track_iters[1:] or [0])),
