@@ -54,5 +54,70 @@ def test_slam_mesh_uses_its_own_piece_fraction(monkeypatch, rgbd_capture):
     for frac in (0.01, 0.005):
         with pytest.raises(RuntimeError, match="stop here"):
             map_surface(SlamMap.empty(), [kf], stream, SlamConfig(downscale=1, mesh_min_piece=frac), lambda *a, **k: None)
-        assert seen["config"].min_component_fraction == frac and seen["config"].unseen_faces == "drop"
+        assert seen["config"].min_component_fraction == frac and seen["config"].unseen_faces == "drop_but_bridges"
     assert SlamConfig().mesh_min_piece == 0.01 < switch.SurfaceConfig().min_component_fraction
+
+
+
+class _Mesh:
+    """Triangles added one by one, each wound so that its normal points along `towards`."""
+
+    def __init__(self):
+        self.v, self.f, self.name = [], [], []
+
+    def vert(self, p) -> int:
+        p = tuple(float(x) for x in p)
+        if p not in self.v:
+            self.v.append(p)
+        return self.v.index(p)
+
+    def tri(self, a, b, c, towards, name):
+        ia, ib, ic = self.vert(a), self.vert(b), self.vert(c)
+        n = np.cross(np.subtract(b, a), np.subtract(c, a))
+        self.f.append((ia, ib, ic) if n @ np.asarray(towards, float) > 0 else (ia, ic, ib))
+        self.name.append(name)
+
+    def quad(self, a, b, c, d, towards, name):
+        self.tri(a, b, c, towards, name)
+        self.tri(a, c, d, towards, name)
+
+    def arrays(self):
+        return np.array(self.v, np.float64), np.array(self.f, np.int64), np.array(self.name)
+
+
+def _slab(m: _Mesh, x0, x1, y0, y1, z0, z1, name):
+    """A box: top and sides seen (`name`), the bottom unseen (`name` + ' underside', 2x2 quads, facing down)."""
+    xm, ym = (x0 + x1) / 2, (y0 + y1) / 2
+    m.quad((x0, y0, z1), (x1, y0, z1), (x1, y1, z1), (x0, y1, z1), (0, 0, 1), name)
+    for a, b, t in [((x0, y0), (x1, y0), (0, -1, 0)), ((x1, y0), (x1, y1), (1, 0, 0)),
+                    ((x1, y1), (x0, y1), (0, 1, 0)), ((x0, y1), (x0, y0), (-1, 0, 0))]:
+        m.quad((*a, z0), (*b, z0), (*b, z1), (*a, z1), t, name)
+    for xa, xb in [(x0, xm), (xm, x1)]:
+        for ya, yb in [(y0, ym), (ym, y1)]:
+            m.quad((xa, ya, z0), (xb, ya, z0), (xb, yb, z0), (xa, yb, z0), (0, 0, -1), name + " underside")
+
+
+def _room():
+    """A floor (seen); a table top (a 5 cm slab, its underside unseen) on a leg (seen) that touches the underside's
+    centre vertex; a shelf slab hanging free above the floor (underside unseen, joined to nothing); the back of a
+    wall (unseen, facing out into nothing)."""
+    m = _Mesh()
+    m.quad((-2, -2, 0), (2, -2, 0), (2, 2, 0), (-2, 2, 0), (0, 0, 1), "floor")
+    _slab(m, -0.5, 0.5, -0.5, 0.5, 0.75, 0.8, "table")
+    m.tri((0, 0, 0.75), (0.05, 0, 0.02), (-0.05, 0, 0.02), (0, 1, 0), "leg")
+    _slab(m, 1.0, 1.6, -0.3, 0.3, 1.2, 1.25, "shelf")
+    m.quad((-2.5, -2, 0), (-2.5, -2, 2.5), (-2.5, 2, 2.5), (-2.5, 2, 0), (-1, 0, 0), "wall back")
+    return m.arrays()
+
+
+def test_only_hidden_sides_that_join_seen_pieces_are_kept():
+    v, f, names = _room()
+    unseen = np.isin(names, ["table underside", "shelf underside", "wall back"])
+    assert set(names[switch.facing_seen(v, f, unseen, reach=2.0)]) == {"table underside", "shelf underside"}
+    assert set(names[switch.facing_seen(v, f, unseen, reach=1.0)]) == {"table underside"}  # the shelf: 1.2 away
+    # the table's underside joins the top (its rim) to the leg: kept; the shelf's joins nothing: dropped
+    kept = switch.hidden_bridges(v, f, unseen, reach=2.0)
+    assert set(names[kept]) == {"table underside"} and kept.sum() == 8
+    assert not switch.hidden_bridges(v, f, np.zeros(len(f), bool), reach=2.0).any()
+    # a piece below min_piece x the largest (here the leg: 1 face against the table's 10) is a floater: nothing to join
+    assert not switch.hidden_bridges(v, f, unseen, reach=2.0, min_piece=0.2).any()

@@ -77,13 +77,17 @@ class SurfaceConfig:
     (a background to be free). Whether the cameras lie inside the soup's hull is not used: a real photo of an object
     from outside has no free pixel either (every pixel sees something), and floaters around an object would put
     its cameras inside. tests/mesh/test_room_walls.py: with True a room seen from inside loses its walls."""
-    unseen_faces: Literal["keep", "drop_enclosed", "drop"] = "keep"
+    unseen_faces: Literal["keep", "drop_enclosed", "drop", "drop_but_bridges"] = "keep"
     """faces no view saw (every vertex farther than the truncation from each view's surface depth): bounding unseen
     space leaves the far side of a shell behind what the views measured. 'drop_enclosed' drops those whose outward
     normal looks at the surface itself (a ray from the face along its normal hits the mesh): the inside wall of an
     object whose underside was never seen, which joins the outside through the unseen opening and so survives
     extract_surface's cavity test; an unseen underside that faces away into open space is kept, closing the object.
-    'drop' drops every unseen face (a room scan: the back of its walls faces outwards, into nothing)."""
+    'drop' drops every unseen face (a room scan: the back of its walls faces outwards, into nothing).
+    'drop_but_bridges' drops them all but the hidden sides that join two pieces of the seen surface: a table top's
+    underside, never seen, faces the floor and joins the top to its legs (hidden_bridges)."""
+    hidden_side_reach: float = 1.0
+    """'drop_but_bridges': how far (scene units: metres in SLAM) an unseen face's normal ray looks for a seen face."""
     fill_holes_px: int = 2
     """empty pixels closer than this (pixels) to covered ones on two sides (a morphological closing) take the depth
     of the nearest covered pixel: a soup has gaps between its triangles, and one ray through a gap would carve the
@@ -384,12 +388,61 @@ class DepthStore(Sequence):
         self.close()
 
 
+def facing_seen(verts: np.ndarray, faces: np.ndarray, unseen: np.ndarray, reach: float) -> np.ndarray:
+    """bool [F]: the unseen faces (`unseen`, bool [F]) whose outward normal ray, from just above the face's centroid,
+    first meets a face that is not unseen within `reach` (scene units; trimesh's ray caster). Such a face is the
+    hidden side of something standing in observed space (a table top's underside above the floor); an unseen face
+    that faces nothing, or only more unseen surface, is the back of the scan."""
+    import trimesh
+
+    out = np.zeros(len(faces), dtype=bool)
+    idx = np.nonzero(unseen)[0]
+    if len(idx) == 0:
+        return out
+    mesh = trimesh.Trimesh(verts, faces, process=False)
+    normal = mesh.face_normals[idx]
+    origin = mesh.triangles_center[idx] + 1e-4 * max(float(np.ptp(verts, 0).max()), 1e-9) * normal
+    loc, ray, tri = mesh.ray.intersects_location(origin, normal, multiple_hits=False)
+    ok = (~unseen[tri]) & (np.linalg.norm(loc - origin[ray], axis=1) <= reach)
+    out[idx[ray[ok]]] = True
+    return out
+
+
+def hidden_bridges(verts: np.ndarray, faces: np.ndarray, unseen: np.ndarray, reach: float,
+                   min_piece: float = 0.0) -> np.ndarray:
+    """bool [F]: the unseen faces that are a hidden side joining pieces of the seen surface. The unseen faces that
+    face a seen face within `reach` (facing_seen) are grouped into vertex-connected groups; a group is kept when its
+    vertices touch two or more pieces of the seen faces with at least `min_piece` x the largest piece's faces (a
+    table top's underside, touching the top's rim and the legs' tops; smaller pieces are floaters, dropped later).
+    Hidden sides that join nothing are guesses the surface does not need, and stay dropped."""
+    cand = facing_seen(verts, faces, unseen, reach)
+    out = np.zeros(len(faces), dtype=bool)
+    if not cand.any() or unseen.all():
+        return out
+    seen_faces = faces[~unseen]
+    _, seen_label = face_components(seen_faces, len(verts))
+    size = np.bincount(seen_label)
+    seen_label = np.where(size[seen_label] >= min_piece * size.max(), seen_label, -1)
+    vertex_piece = np.full(len(verts), -1, dtype=np.int64)
+    vertex_piece[seen_faces.ravel()] = np.repeat(seen_label, 3)
+    cf = faces[cand]
+    n_groups, group = face_components(cf, len(verts))
+    touched = vertex_piece[cf].ravel()
+    pairs = np.unique(np.stack([np.repeat(group, 3), touched], 1)[touched >= 0], axis=0)
+    joins = np.bincount(pairs[:, 0], minlength=n_groups) >= 2
+    out[np.nonzero(cand)[0][joins[group]]] = True
+    return out
+
+
 def unseen_faces(verts: np.ndarray, faces: np.ndarray, cameras: Sequence, depths: Sequence, tolerance: float,
-                 enclosed_only: bool) -> np.ndarray:
+                 enclosed_only: bool, bridge_reach: float | None = None, min_piece: float = 0.0) -> np.ndarray:
     """bool [F]: faces none of whose vertices any view sees (seen_counts with `tolerance`); with enclosed_only, only
-    those whose outward normal ray (from just above the face's centroid) hits the mesh (trimesh's ray caster)."""
+    those whose outward normal ray (from just above the face's centroid) hits the mesh (trimesh's ray caster); with
+    bridge_reach, all but the hidden sides that join pieces of the seen surface (hidden_bridges)."""
     unseen = seen_counts(cameras, depths, verts, tolerance) == 0
     out = unseen[faces].all(1)
+    if bridge_reach is not None:
+        return out & ~hidden_bridges(verts, faces, out, bridge_reach, min_piece)
     if enclosed_only and out.any():
         import trimesh
 
@@ -468,7 +521,10 @@ def soup_to_surface(scene: TriangleScene, cameras: Sequence, render: Callable[[i
                 raise ValueError("depth fusion found no surface (every voxel is free): the soup's renders are empty")
             if config.unseen_faces != "keep":
                 drop = unseen_faces(verts, faces, cameras, depths, trunc_vox * rep.voxel,
-                                    enclosed_only=config.unseen_faces == "drop_enclosed")
+                                    enclosed_only=config.unseen_faces == "drop_enclosed",
+                                    bridge_reach=(config.hidden_side_reach
+                                                  if config.unseen_faces == "drop_but_bridges" else None),
+                                    min_piece=config.min_component_fraction)
                 faces = faces[~drop]
                 if len(faces) == 0:
                     raise ValueError("no view sees any part of the fused surface: nothing is left to fine-tune")
