@@ -50,8 +50,9 @@ class SlamConfig:
     keyframe's correction), then the map refined over all keyframes (--slam.final-ba-map-iters); 0 skips"""
     final_ba_map_iters: int = 30
     """map iterations per bundle-adjustment round (count)"""
-    final_iters: int = 150
-    """refinement iterations over all keyframes after the last frame (soft to hard); 0 skips"""
+    final_iters: int = 400
+    """refinement iterations over all keyframes after the last frame (soft to hard); 0 skips. 7-Scenes, held-out
+    map / mesh.ply PSNR: 150 -> 19.9 / 20.1 dB, 400 -> 20.5 / 20.3 (13 s more), 800 -> 20.9 / 19.9 (40 s more)"""
     keyframe_every: int = 8
     """a new keyframe at least every this many frames (count) ..."""
     keyframe_translation: float = 0.08
