@@ -140,3 +140,15 @@ def test_slam_measures_and_records_the_registration(captures, tmp_path, monkeypa
     with pytest.raises(ValueError, match="--colour-registration"):
         main([str(bad), "--out", str(tmp_path / "run"), "--resume", "--colour-registration", "off",
               "--slam.max-frames", "4"])
+
+
+def test_info_describes_a_slam_stream_and_its_colour(captures, capsys):
+    from trisplat.cli import main as cli_main
+
+    good, bad = captures
+    assert cli_main(["info", str(bad)]) == 0
+    out = capsys.readouterr().out
+    assert "7scenes RGB-D stream" in out and "frames      5 (5 with a reference pose)" in out
+    assert "colour and depth are not registered: the colour camera's focal length is 0.90" in out
+    assert cli_main(["info", str(good)]) == 0
+    assert "colour and depth line up" in capsys.readouterr().out

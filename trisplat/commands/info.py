@@ -72,10 +72,38 @@ def describe(data) -> str:
     return "\n".join(lines)
 
 
+def describe_stream(stream, registration) -> str:
+    """The summary text for an RGB-D stream that only `trisplat slam` reads (7-Scenes, ETH3D, ScanNet, or TUM
+    without poses), with the colour-to-depth registration `trisplat slam` would use."""
+    K = stream.K
+    n_ref = sum(f.reference_c2w is not None for f in stream.frames)
+    lines = [f"capture     {stream.root}",
+             f"format      {stream.format} RGB-D stream (read by `trisplat slam`; `trisplat train` does not read this layout)",
+             f"frames      {len(stream)} ({n_ref} with a reference pose)",
+             f"resolution  {stream.width}x{stream.height}",
+             f"focal       fx {K[0, 0]:.1f}  fy {K[1, 1]:.1f} px, principal point {_fmt_vec(K[:2, 2])} (centres at +0.5)",
+             f"depth       scale {stream.depth_scale:g} metres per raw value",
+             f"colour      (trisplat slam's --colour-registration auto) {registration.describe(K)}"]
+    lines += [f"warning     {w}" for w in stream.warnings]
+    return "\n".join(lines)
+
+
 def main(argv: list[str]) -> int:
     cfg = tyro.cli(InfoConfig, args=argv, prog="trisplat info", description=__doc__, config=CLI_STYLE)
     from trisplat.data import load_dataset
+    from trisplat.data.rgbd_stream import detect_stream_format
 
-    data = load_dataset(cfg.path, downscale=cfg.downscale, test_every=cfg.test_every, format=cfg.data_format, prepare="lazy")
+    try:
+        data = load_dataset(cfg.path, downscale=cfg.downscale, test_every=cfg.test_every, format=cfg.data_format,
+                            prepare="lazy")
+    except (ValueError, FileNotFoundError):
+        if cfg.data_format != "auto" or not Path(cfg.path).is_dir() or detect_stream_format(cfg.path) is None:
+            raise
+        from trisplat.data.colour_registration import estimate_colour_registration
+        from trisplat.data.rgbd_stream import open_stream
+
+        stream = open_stream(cfg.path)
+        print(describe_stream(stream, estimate_colour_registration(stream)))
+        return 0
     print(describe(data))
     return 0
