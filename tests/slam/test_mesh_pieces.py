@@ -121,3 +121,13 @@ def test_only_hidden_sides_that_join_seen_pieces_are_kept():
     assert not switch.hidden_bridges(v, f, np.zeros(len(f), bool), reach=2.0).any()
     # a piece below min_piece x the largest (here the leg: 1 face against the table's 10) is a floater: nothing to join
     assert not switch.hidden_bridges(v, f, unseen, reach=2.0, min_piece=0.2).any()
+
+
+def test_without_embree_the_bridges_fall_back_to_dropping_with_a_note(monkeypatch):
+    import trimesh
+
+    rep = switch.SwitchReport()
+    monkeypatch.setattr(trimesh.ray, "has_embree", False)
+    assert not switch._fast_rays(rep) and "no Embree ray caster" in rep.notes[0]
+    monkeypatch.setattr(trimesh.ray, "has_embree", True)
+    assert switch._fast_rays(rep)

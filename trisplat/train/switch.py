@@ -434,6 +434,19 @@ def hidden_bridges(verts: np.ndarray, faces: np.ndarray, unseen: np.ndarray, rea
     return out
 
 
+def _fast_rays(rep) -> bool:
+    """Whether trimesh casts rays with Embree (embreex, installed on x86-64). Without it, casting a ray from each of
+    a room's ~1M unseen faces would take hours: 'drop_but_bridges' then drops them all, and says so in `rep`."""
+    import trimesh
+
+    if trimesh.ray.has_embree:
+        return True
+    note = "hidden sides not joined (no Embree ray caster: pip install embreex): every unseen face dropped"
+    if note not in rep.notes:
+        rep.notes.append(note)
+    return False
+
+
 def unseen_faces(verts: np.ndarray, faces: np.ndarray, cameras: Sequence, depths: Sequence, tolerance: float,
                  enclosed_only: bool, bridge_reach: float | None = None, min_piece: float = 0.0) -> np.ndarray:
     """bool [F]: faces none of whose vertices any view sees (seen_counts with `tolerance`); with enclosed_only, only
@@ -520,10 +533,10 @@ def soup_to_surface(scene: TriangleScene, cameras: Sequence, render: Callable[[i
             if len(faces) == 0:
                 raise ValueError("depth fusion found no surface (every voxel is free): the soup's renders are empty")
             if config.unseen_faces != "keep":
+                bridges = config.unseen_faces == "drop_but_bridges" and _fast_rays(rep)
                 drop = unseen_faces(verts, faces, cameras, depths, trunc_vox * rep.voxel,
                                     enclosed_only=config.unseen_faces == "drop_enclosed",
-                                    bridge_reach=(config.hidden_side_reach
-                                                  if config.unseen_faces == "drop_but_bridges" else None),
+                                    bridge_reach=config.hidden_side_reach if bridges else None,
                                     min_piece=config.min_component_fraction)
                 faces = faces[~drop]
                 if len(faces) == 0:
