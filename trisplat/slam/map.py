@@ -37,6 +37,12 @@ class SpawnConfig:
     """samples farther than this (metres) are not spawned (noisy far depth)"""
     min_valid_neighbours: bool = True
     """require a valid depth normal (all four neighbours measured)"""
+    fill_holes_px: int = 0
+    """pixels without a depth measurement that the map leaves thin, within this many pixels of a measured one, get
+    the nearest measured depth for spawning (things nearer than the sensor's range, dark or shiny surfaces): the map
+    then covers them, at a guessed depth (0 = off). 7-Scenes at 24: held-out map / mesh.ply 20.5 -> 21.6 / 20.3 ->
+    21.1 dB, Chamfer 1.90 -> 2.00 cm. Off by default: where no depth means nothing there (an object against empty
+    space), it grows the object's outline by up to this many pixels of guessed surface"""
 
 
 @dataclass
@@ -112,6 +118,21 @@ def edge_lengths(positions: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
                         (t[:, 0] - t[:, 2]).norm(dim=1)], 1).max(1).values
 
 
+def fill_depth_holes(depth: np.ndarray, where: np.ndarray, max_px: float) -> np.ndarray:
+    """depth [H,W] (0 = no measurement) with the pixels of `where` that have no measurement, within max_px of one,
+    set to the nearest measured depth (a copy; the input when there is nothing to fill)."""
+    from scipy.ndimage import distance_transform_edt
+
+    missing = depth <= 0
+    if not missing.any() or missing.all():
+        return depth
+    dist, (iy, ix) = distance_transform_edt(missing, return_indices=True)
+    fill = missing & where & (dist <= max_px)
+    out = depth.copy()
+    out[fill] = depth[iy[fill], ix[fill]]
+    return out
+
+
 def thin_mask(rgb_obs: np.ndarray, depth_obs: np.ndarray, alpha: np.ndarray, surf_depth: np.ndarray,
               cfg: SpawnConfig, rgb_map: np.ndarray | None = None) -> np.ndarray:
     """Pixels [H,W] bool where the map is thin: valid observed depth and (low rendered alpha, or observed surface in
@@ -144,6 +165,8 @@ def spawn(smap: SlamMap, rgb: np.ndarray, depth: np.ndarray, c2w: np.ndarray, K:
     else:
         alpha, surf = np.zeros((H, W), np.float32), np.full((H, W), np.inf, np.float32)
         rgb_map = None
+    if cfg.fill_holes_px > 0:
+        depth = fill_depth_holes(depth, alpha < cfg.thin_alpha, cfg.fill_holes_px)
     mask = thin_mask(rgb, depth, alpha, surf, cfg, rgb_map)
     n_cam, n_ok = depth_to_normal(torch.from_numpy(depth.astype(np.float64)), torch.from_numpy(K))
     if cfg.min_valid_neighbours:
