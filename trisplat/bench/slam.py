@@ -192,15 +192,14 @@ def main(argv: list[str]) -> int:
     except ImportError as exc:
         print(f"trisplat bench slam: {exc}", file=sys.stderr)
         return 2
+    from trisplat.data.colour_registration import apply_colour_registration
     from trisplat.data.rgbd_stream import open_stream
     from trisplat.eval.geometry import load_surface
-
-    from trisplat.data.colour_registration import apply_colour_registration
 
     stream = open_stream(args.capture, depth_scale=args.depth_scale)
     reg = apply_colour_registration(stream, args.colour_registration)  # the held-out photos and Open3D's colour
     print(reg.describe(stream.K), flush=True)
-    registration = f"{reg.scale!r},{reg.shift[0]!r},{reg.shift[1]!r}" if reg.applied else "off"
+    registration = reg.as_option()
     ids = open3d_baseline.frame_ids(len(stream), args.max_frames, args.stride)
     ref_c2w = [stream.frames[i].reference_c2w for i in ids]
     stamps = [stream.frames[i].stamp if stream.frames[i].stamp is not None else i / args.fps for i in ids]

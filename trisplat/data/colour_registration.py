@@ -61,6 +61,10 @@ class ColourRegistration:
                 f"{self.shift[1]:+.1f}) px; the outlines' colour gradient is {self.gain:.2f}x higher registered "
                 f"({self.frames} frames, {self.edge_points} outline points); colour is resampled to the depth camera")
 
+    def as_option(self) -> str:
+        """The --colour-registration value that gives this registration exactly: 'SCALE,DX,DY' or 'off'."""
+        return f"{self.scale!r},{self.shift[0]!r},{self.shift[1]!r}" if self.applied else "off"
+
     def as_dict(self) -> dict:
         return {"scale": self.scale, "shift_px": list(self.shift), "applied": self.applied, "gain": self.gain,
                 "frames": self.frames, "edge_points": self.edge_points, "reason": self.reason}
@@ -204,7 +208,7 @@ def estimate_from_frames(frames: list[tuple[np.ndarray, np.ndarray]], K: np.ndar
                        [[0, 0, 0], [0.01, 0, 0], [0, step / 2, 0], [0, 0, step / 2]])})
     s, tx, ty = (float(v) for v in res.x)
     best, ident = float(-res.fun), fine(1.0, 0.0, 0.0)
-    gain = best / max(ident, 1e-12)
+    gain = float(best / max(ident, 1e-12))
     common = dict(scale=s, shift=(tx, ty), gain=gain, frames=len(points), edge_points=n_pts)
     at_bound = not (SCALE_RANGE[0] + 0.005 < s < SCALE_RANGE[1] - 0.005 and max(abs(tx), abs(ty)) < max_shift)
     if at_bound:

@@ -406,10 +406,8 @@ def run_slam(stream: RGBDStream, out: Path, cfg: SlamConfig, resume: bool = Fals
     ids = list(range(0, len(stream), cfg.stride))
     if cfg.max_frames:
         ids = ids[: cfg.max_frames]
-    reg = stream.colour_registration
     record = {"capture": str(Path(stream.root).resolve()), "format": stream.format,
-              "depth_scale": float(stream.depth_scale),
-              "colour_registration": f"{reg.scale!r},{reg.shift[0]!r},{reg.shift[1]!r}" if reg.applied else "off",
+              "depth_scale": float(stream.depth_scale), "colour_registration": stream.colour_registration.as_option(),
               **asdict(cfg)}
     ckpt = out / CHECKPOINT
     start, state = 0, None
