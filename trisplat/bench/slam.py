@@ -41,8 +41,9 @@ METHODS = ("trisplat", "open3d")
 COLUMNS = ["method", "frames", "resolution", "ATE RMSE m", "ATE max m", "RPE m/s", "RPE deg/s", "wall s", "frames/s",
            "scoring s", "compile s", "frames/s without scoring or compiling", "mesh faces", "largest component",
            "Chamfer m", "accuracy m",
-           "completeness m", "F-score", "held-out PSNR",
-           "held-out depth L1 m", "held-out PSNR of mesh.ply", "load before", "load after"]  # fmt: skip
+           "completeness m", "F-score", "held-out PSNR", "held-out PSNR without exposure",
+           "held-out depth L1 m", "held-out PSNR of mesh.ply", "held-out PSNR of mesh.ply at the frames' exposure",
+           "load before", "load after"]  # fmt: skip
 
 
 @dataclass
@@ -246,7 +247,9 @@ def main(argv: list[str]) -> int:
                len(ids) / max(wall - scoring - compiling, 1e-9),
                mesh.get("num_faces"), mesh.get("largest_component_fraction"), geo.get("chamfer"),
                geo.get("accuracy"), geo.get("completeness"), geo.get("fscore"), held.get("psnr"),
-               held.get("depth_l1_m"), scores["held_out_mesh"]["psnr"], load0, load1]
+               held.get("psnr_without_exposure"), held.get("depth_l1_m"), scores["held_out_mesh"]["psnr"],
+               (metrics.get("held_out_mesh") or {}).get("psnr") if held.get("psnr_without_exposure") is not None
+               else None, load0, load1]
         table.add(*row)
         details["methods"][method] = {"wall_seconds": wall, "cpu_seconds": cpu, "load_before": load0,
                                       "load_after": load1, "run_dir": str(run_dir), "metrics": metrics, **scores}
@@ -270,9 +273,13 @@ def main(argv: list[str]) -> int:
         f"its poses (rotations and centres) onto the reference poses, {args.chamfer_samples} samples a side "
         "(trisplat.eval.geometry); the reference is fused from the same depth maps by the same TSDF as the Open3D "
         "baseline, which favours the baseline's Chamfer. Held-out: trisplat's frames "
-        "that were not keyframes, rendered at their tracked poses (its metrics.json). Held-out PSNR of mesh.ply: "
-        "each method's mesh (vertex colours, unlit, 2x2 samples, black where empty) at its own poses of the same frames "
-        "(trisplat's held-out frames when trisplat ran; Open3D fused every frame, those included). Open3D: "
+        "that were not keyframes, rendered at their tracked poses (its metrics.json), at each frame's exposure "
+        "interpolated between the keyframes around it (trisplat.slam.exposure: from the keyframes, never fitted to "
+        "the scored photo); without exposure: the map as it is. Held-out PSNR of mesh.ply: "
+        "each method's mesh file as it is (vertex colours, unlit, 2x2 samples, black where empty) at its own poses of "
+        "the same frames (trisplat's held-out frames when trisplat ran; Open3D fused every frame, those included); at "
+        "the frames' exposure: trisplat's mesh through each frame's interpolated exposure (its metrics.json; Open3D "
+        "has no exposure model). Open3D: "
         "RGB-D odometry (hybrid term) frame to frame + UniformTSDFVolume (trisplat.slam.open3d_baseline). "
         "Load = 1-minute load average before and after each method (the machine may be shared). "
         f"Colour: {reg.describe(stream.K)} (trisplat.data.colour_registration; the held-out photos both methods are "

@@ -14,6 +14,7 @@ import torch
 from trisplat.io.atomic import atomic_write_text
 from trisplat.run import move_aside, prepare_run_dir
 from trisplat.data.rgbd_stream import FramePrefetch, RGBDStream, _box_down, downscale_depth, load_frame
+from trisplat.slam.exposure import apply_exposure, exposure_range, identity, interpolate_exposure, regauge_map, undo_exposure
 from trisplat.slam.loop import Edge, LoopCloser, LoopConfig, optimise_pose_graph
 from trisplat.slam.map import PruneConfig, SlamMap, SpawnConfig, prune, spawn
 from trisplat.slam.mapping import Keyframe, MapConfig, refine
@@ -88,6 +89,12 @@ class SlamConfig:
     """every this-many-th non-keyframe frame is scored (PSNR / SSIM / depth L1) at its tracked pose"""
     seed: int = 0
     """random seed (torch and numpy) of the run"""
+    exposure: bool = True
+    """in the final refinement each keyframe sees the map through its own exposure, an affine colour per channel
+    solved against the map (trisplat.slam.exposure; the map and the mesh end at the keyframes' mean exposure); other
+    frames get the exposure interpolated between the keyframes around them. For cameras with auto
+    exposure (7-Scenes' Kinect). Not used while tracking and mapping: there it made keyframes come every other frame
+    after a loop closure. Off: photos are taken as they are"""
     mesh: Literal["surface", "delaunay"] = "surface"
     """how mesh.ply is made: 'surface' fuses the map's depth at the keyframes into one connected surface (the
     training switch's path, trisplat.train.switch); 'delaunay' is the restricted Delaunay of the map's vertices
@@ -138,6 +145,8 @@ class SlamState:
     """--slam.realtime: frames dropped to keep up (numbers in the run's sequence)"""
     hurried: int = 0
     """--slam.realtime: frames tracked with fewer iterations to keep up"""
+    exposure: list[np.ndarray] = field(default_factory=list)
+    """per keyframe (in keyframe_ids' order): its exposure [2,3] (--slam.exposure; empty when off)"""
 
 
 def _pyramid(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, levels) -> list:
@@ -164,6 +173,7 @@ def save_checkpoint(path: Path, state: SlamState, frames_done: int) -> None:
         "rng_state": state.rng_state,
         "track_coverage": [float(v) for v in state.track_coverage], "dropped": [int(v) for v in state.dropped],
         "hurried": int(state.hurried),
+        "exposure": torch.as_tensor(np.array(state.exposure).reshape(-1, 2, 3), dtype=torch.float64),
         "graph_ij": torch.tensor([[e.i, e.j, int(e.loop)] for e in state.edges], dtype=torch.int64).reshape(-1, 3),
         "graph_Z": torch.as_tensor(np.array([e.Z for e in state.edges]).reshape(-1, 4, 4), dtype=torch.float64),
     }
@@ -185,6 +195,7 @@ def load_checkpoint(path: Path) -> tuple[SlamState, int]:
                    bool(b.get("refined", False)), float(b.get("final_s", 0.0)), str(b.get("rng_state", "")))
     st.dropped, st.hurried = list(b.get("dropped", [])), int(b.get("hurried", 0))
     st.track_coverage = list(b.get("track_coverage", [0.0] * len(st.c2w)))
+    st.exposure = [e.numpy().copy() for e in b.get("exposure", torch.zeros(0, 2, 3))]
     if "graph_ij" in b:
         st.edges = [Edge(int(i), int(j), Z.numpy().copy(), bool(lp)) for (i, j, lp), Z in zip(b["graph_ij"].tolist(),
                                                                                                b["graph_Z"])]
@@ -438,15 +449,17 @@ def run_slam(stream: RGBDStream, out: Path, cfg: SlamConfig, resume: bool = Fals
 
     def checkpoint(done: int) -> None:
         state.rng_state = json.dumps(rng.bit_generator.state)
+        state.exposure = [kf.exposure for kf in keyframes] if all(kf.exposure is not None for kf in keyframes) else []
         save_checkpoint(ckpt, state, done)
         atomic_write_text(out / STATE, json.dumps({"finished": False, "step": done, "total_steps": len(ids),
                                                    "refined": state.refined}))
 
     keyframes: list[Keyframe] = []
     closer = LoopCloser(K, cfg.loop, state.edges, seed=cfg.seed)
-    for k in state.keyframe_ids:  # reload keyframe observations of a resumed run
+    for i, k in enumerate(state.keyframe_ids):  # reload keyframe observations of a resumed run
         rgb, depth = load_frame(stream, ids[k], D)
-        keyframes.append(Keyframe(k, torch.from_numpy(rgb), torch.from_numpy(depth), state.c2w[k]))
+        e = state.exposure[i] if i < len(state.exposure) else None  # solved in the final refinement
+        keyframes.append(Keyframe(k, torch.from_numpy(rgb), torch.from_numpy(depth), state.c2w[k], exposure=e))
         closer.observe(rgb, depth)
     t0 = time.time() - state.elapsed_s
     t_session = time.time()
@@ -538,12 +551,22 @@ def run_slam(stream: RGBDStream, out: Path, cfg: SlamConfig, resume: bool = Fals
             moved = bundle_adjust(state, keyframes, K, cfg, rng)
             log(f"bundle adjustment round {rnd + 1}/{cfg.final_ba_rounds}: {len(keyframes) - 1} keyframe poses "
                 f"tracked again against the map (moved up to {moved * 100:.2f} cm), map refined", flush=True)
+        if cfg.exposure:  # every keyframe's exposure solved against the map (the ridge holds the gauge near identity)
+            for kf in keyframes:
+                kf.exposure, kf.fit_exposure = identity(), True
         if cfg.final_iters:
             log(f"final refinement: {cfg.final_iters} iterations over {len(keyframes)} keyframes, "
-                f"sigma {cfg.sigma} -> {cfg.sigma_end}", flush=True)
+                f"sigma {cfg.sigma} -> {cfg.sigma_end}" + (", each keyframe's exposure solved" if cfg.exposure else ""),
+                flush=True)
             refine(state.smap, keyframes, K, cfg.sigma, cfg.final_iters, cfg.mapping, rng, sigma_end=cfg.sigma_end,
                    window=0)
             prune(state.smap, cfg.prune)
+        if cfg.exposure and len(keyframes) > 1:
+            m = regauge_map(state.smap, keyframes)
+            log(f"exposure: {len(keyframes)} keyframes, gains {exposure_range(keyframes, 0)}, "
+                f"biases {exposure_range(keyframes, 1)}; "
+                f"the map moved to their mean (gain {np.round(m[0], 3).tolist()}, bias {np.round(m[1], 3).tolist()})",
+                flush=True)
         state.final_s = time.time() - tf
         state.refined = True
         checkpoint(len(ids))  # before the outputs: a failure there resumes straight to them, not to a second refinement
@@ -553,19 +576,26 @@ def run_slam(stream: RGBDStream, out: Path, cfg: SlamConfig, resume: bool = Fals
     return metrics
 
 
-def evaluate_frames(stream: RGBDStream, smap: SlamMap, c2ws, ids, frame_numbers, cfg: SlamConfig) -> dict:
+def evaluate_frames(stream: RGBDStream, smap: SlamMap, c2ws, ids, frame_numbers, cfg: SlamConfig,
+                    exposure=None) -> dict:
     """PSNR / SSIM / depth L1 (metres, on pixels with valid observed depth and rendered alpha > 0.5) of the map
-    rendered hard-ish (sigma_end) at the tracked poses of the given frames (numbers in the run's sequence)."""
+    rendered hard-ish (sigma_end) at the tracked poses of the given frames (numbers in the run's sequence).
+    exposure: frame number -> its exposure [2,3] (interpolated between keyframes, never fitted to the scored photo),
+    applied to the render; the PSNR without it is reported too ("psnr_without_exposure")."""
     from trisplat.eval.image_metrics import psnr, ssim
 
     K = stream.K_at(cfg.downscale)
     W, H = stream.size_at(cfg.downscale)
-    ps, ss, dl = [], [], []
+    ps, ss, dl, raw = [], [], [], []
     for n in frame_numbers:
         rgb, depth = load_frame(stream, ids[n], cfg.downscale)
         with torch.no_grad():
             o = smap.render(np.linalg.inv(c2ws[n]), K, W, H, cfg.sigma_end)
-        img = o.rgb.clamp(0, 1).numpy()
+        img = o.rgb.clamp(0, 1)
+        raw.append(psnr(img.numpy(), rgb))
+        if exposure is not None:
+            img = apply_exposure(img, exposure(n), o.alpha)
+        img = img.numpy()
         ps.append(psnr(img, rgb))
         ss.append(ssim(img, rgb))
         a = o.alpha.numpy()
@@ -573,14 +603,16 @@ def evaluate_frames(stream: RGBDStream, smap: SlamMap, c2ws, ids, frame_numbers,
         if m.any():
             dl.append(float(np.abs(o.depth.numpy()[m] / a[m] - depth[m]).mean()))
     mean = lambda v: float(np.mean(v)) if v else None
-    return {"frames": len(frame_numbers), "psnr": mean(ps), "ssim": mean(ss), "depth_l1_m": mean(dl), "lpips": None}
+    return {"frames": len(frame_numbers), "psnr": mean(ps), "ssim": mean(ss), "depth_l1_m": mean(dl), "lpips": None,
+            "psnr_without_exposure": mean(raw) if exposure is not None else None}
 
 
 def evaluate_mesh_frames(stream: RGBDStream, verts: np.ndarray, faces: np.ndarray, colours: np.ndarray, c2ws, ids,
-                         frame_numbers, downscale: int, supersample: int = 2) -> dict:
+                         frame_numbers, downscale: int, supersample: int = 2, exposure=None) -> dict:
     """PSNR / SSIM of the mesh a user gets (sRGB vertex colours, unlit, as a viewer shows it:
     trisplat.eval.spec_render at `supersample` x `supersample` samples, black where it shows nothing) at the tracked
-    poses of the given frames (numbers in the run's sequence)."""
+    poses of the given frames (numbers in the run's sequence). exposure: as evaluate_frames' (the photo's exposure
+    applied to what the viewer shows; "psnr_without_exposure" without it)."""
     from trisplat.eval.image_metrics import psnr, ssim
     from trisplat.eval.spec_render import render_asset, vertex_colour_asset
 
@@ -589,15 +621,20 @@ def evaluate_mesh_frames(stream: RGBDStream, verts: np.ndarray, faces: np.ndarra
     K = stream.K_at(downscale)
     W, H = stream.size_at(downscale)
     asset = vertex_colour_asset(verts, faces, colours)
-    ps, ss = [], []
+    ps, ss, raw = [], [], []
     for n in frame_numbers:
         rgb, _ = load_frame(stream, ids[n], downscale)
-        img = render_asset(asset, np.linalg.inv(c2ws[n]), K, W, H, background=(0.0, 0.0, 0.0),
-                           supersample=supersample)
+        w2c = np.linalg.inv(c2ws[n])
+        img = render_asset(asset, w2c, K, W, H, background=(0.0, 0.0, 0.0), supersample=supersample)
+        raw.append(psnr(img, rgb))
+        if exposure is not None:  # the surface's colours as this photo's exposure shows them
+            seen = apply_exposure(torch.from_numpy(colours).float(), exposure(n)).numpy()
+            img = render_asset(vertex_colour_asset(verts, faces, seen), w2c, K, W, H, background=(0.0, 0.0, 0.0),
+                               supersample=supersample)
         ps.append(psnr(img, rgb))
         ss.append(ssim(img, rgb))
     return {"frames": len(frame_numbers), "psnr": float(np.mean(ps)), "ssim": float(np.mean(ss)),
-            "supersample": supersample}
+            "supersample": supersample, "psnr_without_exposure": float(np.mean(raw)) if exposure is not None else None}
 
 
 def map_surface(smap: SlamMap, keyframes: list[Keyframe], stream: RGBDStream, cfg: SlamConfig, log
@@ -622,7 +659,7 @@ def map_surface(smap: SlamMap, keyframes: list[Keyframe], stream: RGBDStream, cf
                          unseen_faces=cfg.mesh_unseen, min_component_fraction=cfg.mesh_min_piece)
     surface, rep = soup_to_surface(smap.scene.detached(), cams, render, None, scfg,
                                    lambda m: log(f"mesh: {m}", flush=True),
-                                   images=lambda n: keyframes[n].rgb.numpy())
+                                   images=lambda n: undo_exposure(keyframes[n].rgb.numpy(), keyframes[n].exposure))
     log(f"mesh: {rep.summary()}", flush=True)
     cols = sh_dc_to_rgb(surface.sh[:, 0, :]).numpy()
     info = {"method": "the map's depth at the keyframes fused into one surface (trisplat.train.switch)",
@@ -662,9 +699,16 @@ def write_outputs(stream, out: Path, cfg: SlamConfig, state: SlamState, ids, key
     mesh_info["seconds"] = time.time() - tm
     kf_set = set(state.keyframe_ids)
     held = [n for n in range(len(ids)) if n not in kf_set][:: max(1, cfg.eval_every)]
+    exposed = [kf for kf in keyframes if kf.exposure is not None]
+    frame_exposure = None
+    if cfg.exposure and len(exposed) == len(keyframes) > 0:
+        kf_frames, kf_exp = [kf.frame for kf in keyframes], [kf.exposure for kf in keyframes]
+        frame_exposure = lambda n: interpolate_exposure(kf_frames, kf_exp, n)  # noqa: E731
     te = time.time()
-    held_map = {**evaluate_frames(stream, state.smap, state.c2w, ids, held, cfg), "frame_numbers": [int(n) for n in held]}
-    held_mesh = evaluate_mesh_frames(stream, verts, faces, cols, state.c2w, ids, held, cfg.downscale)
+    held_map = {**evaluate_frames(stream, state.smap, state.c2w, ids, held, cfg, frame_exposure),
+                "frame_numbers": [int(n) for n in held]}
+    held_mesh = evaluate_mesh_frames(stream, verts, faces, cols, state.c2w, ids, held, cfg.downscale,
+                                     exposure=frame_exposure)
     eval_s = time.time() - te
     metrics = {
         "capture": str(stream.root), "format": stream.format, "frames": len(ids),
@@ -677,6 +721,12 @@ def write_outputs(stream, out: Path, cfg: SlamConfig, state: SlamState, ids, key
                       "hurried_frames": state.hurried} if cfg.realtime else None),
         "loop_closures": [[int(state.keyframe_ids[e.i]), int(state.keyframe_ids[e.j])] for e in state.edges if e.loop],
         "held_out": held_map, "held_out_mesh": held_mesh,
+        "exposure": ({"keyframes": [int(kf.frame) for kf in keyframes],
+                      "gain": [np.round(kf.exposure[0], 4).tolist() for kf in keyframes],
+                      "bias": [np.round(kf.exposure[1], 4).tolist() for kf in keyframes],
+                      "held_out": "each held-out frame's exposure is interpolated between the keyframes around it "
+                                  "(never fitted to the scored photo); psnr_without_exposure: the map and mesh as "
+                                  "they are"} if frame_exposure is not None else None),
         "eval_seconds": eval_s,  # scoring the held-out frames (not part of SLAM: the bench reports it apart)
         "compile_seconds": compile_s,  # the kernels compiled (or loaded) before the run (trisplat.slam.warmup)
     }
@@ -692,7 +742,10 @@ def write_outputs(stream, out: Path, cfg: SlamConfig, state: SlamState, ids, key
     hm, hs = metrics["held_out"], metrics["held_out_mesh"]
     if hm["psnr"] is not None:
         log(f"held-out frames ({hm['frames']}, not keyframes): the map renders {hm['psnr']:.2f} dB"
-            + (f", {MESH} as a viewer shows it {hs['psnr']:.2f} dB" if hs["psnr"] is not None else ""))
+            + (f", {MESH} as a viewer shows it {hs['psnr']:.2f} dB" if hs["psnr"] is not None else "")
+            + (f" (at each frame's exposure from the keyframes around it; as they are: {hm['psnr_without_exposure']:.2f}"
+               + (f" / {hs['psnr_without_exposure']:.2f}" if hs.get("psnr_without_exposure") is not None else "")
+               + " dB)" if hm.get("psnr_without_exposure") is not None else ""))
     atomic_write_text(out / METRICS, json.dumps(metrics, indent=2))
     log(f"wrote {out / TRAJECTORY}, {out / MODEL}, {out / MESH} and {MESH_GLB} ({mesh_info.get('faces', 0)} faces, largest "
         f"component {mesh_info.get('largest_component_fraction', 0):.1%}), {out / METRICS}")
