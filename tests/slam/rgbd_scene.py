@@ -47,3 +47,23 @@ def loop_path_w2c(n: int = 25) -> list[np.ndarray]:
 def write_loop_sequence(root: Path, width: int = W, height: int = H, n: int = 25) -> Path:
     """Ray-cast the closed path loop_path_w2c(n) into `root` (7-Scenes layout), as write_rgbd_sequence."""
     return write_rgbd_sequence(root, width, height, n, path=loop_path_w2c(n))
+
+
+def black_background_copy(src: Path, dst: Path, gains=None) -> Path:
+    """The capture at `src` copied to `dst` with black where the depth camera saw nothing (the white synthetic
+    background: a map or mesh renders black there, so PSNRs then measure the scene), and frame k's colour multiplied
+    by gains[k] when given (an auto-exposing camera)."""
+    import shutil
+
+    from PIL import Image
+
+    shutil.copytree(src, dst)
+    files = sorted(dst.glob("frame-*.color.png"))
+    gains = np.ones(len(files)) if gains is None else np.asarray(gains, np.float64)
+    assert len(files) == len(gains)
+    for f, g in zip(files, gains):
+        a = np.asarray(Image.open(f)).astype(np.float64) * g
+        depth = np.asarray(Image.open(str(f).replace(".color.png", ".depth.png")))
+        a[depth == 0] = 0
+        Image.fromarray(np.clip(np.round(a), 0, 255).astype(np.uint8)).save(f)
+    return dst

@@ -4,12 +4,9 @@ photo sees unchanged; and end to end, a capture whose colour stream changes its 
 mapped better with the exposures than without, and the fitted gains follow the true ones."""
 from __future__ import annotations
 
-import shutil
-
 import numpy as np
 import pytest
 import torch
-from PIL import Image
 
 from trisplat.data.rgbd_stream import open_stream
 from trisplat.slam.exposure import (apply_exposure, fit_exposure, identity, interpolate_exposure, regauge,
@@ -19,6 +16,7 @@ from trisplat.slam.mapping import Keyframe
 from trisplat.slam.system import SlamConfig, run_slam
 from trisplat.slam.track import TrackConfig
 from trisplat.scene.model import TriangleScene
+from tests.slam.rgbd_scene import black_background_copy
 
 
 def _render_and_photo(gain, bias, seed=0, shape=(60, 80)):
@@ -99,26 +97,11 @@ def test_regauge_keeps_what_each_photo_sees():
         np.testing.assert_allclose(apply_exposure(smap.colors(), kf.exposure).numpy(), b.numpy(), atol=1e-5)
 
 
-def _exposed_copy(src, dst, gains):
-    """The capture at `src` with frame k's colour multiplied by gains[k] (an auto-exposing camera), and black where
-    the depth camera saw nothing (the synthetic background; the map renders black there, so the scores measure the
-    scene)."""
-    shutil.copytree(src, dst)
-    files = sorted(dst.glob("frame-*.color.png"))
-    assert len(files) == len(gains)
-    for f, g in zip(files, gains):
-        a = np.asarray(Image.open(f)).astype(np.float64) * g
-        depth = np.asarray(Image.open(str(f).replace(".color.png", ".depth.png")))
-        a[depth == 0] = 0
-        Image.fromarray(np.clip(np.round(a), 0, 255).astype(np.uint8)).save(f)
-    return dst
-
-
 @pytest.mark.slow
 def test_slam_with_exposure_maps_an_auto_exposing_camera(rgbd_capture, tmp_path):
     n = len(sorted(rgbd_capture.glob("frame-*.color.png")))
     gains = 0.85 + 0.15 * np.cos(np.linspace(0, 2 * np.pi, n))  # 1.0 -> 0.7 -> 1.0
-    cap = _exposed_copy(rgbd_capture, tmp_path / "cap", gains)
+    cap = black_background_copy(rgbd_capture, tmp_path / "cap", gains)
     base = dict(downscale=1, final_iters=40, checkpoint_every=0, eval_every=1, mesh_resolution=128,
                 keyframe_every=2, track=TrackConfig(levels=(2, 1), max_iters=(60, 40)))
     runs = {}
