@@ -119,6 +119,6 @@ def test_slam_with_exposure_maps_an_auto_exposing_camera(rgbd_capture, tmp_path)
     np.testing.assert_allclose(est / est.mean(), true / true.mean(), atol=0.07)
     assert np.corrcoef(est, true)[0, 1] > 0.97
     # held-out frames: interpolated exposure beats the photos taken as they are, on the map and on the mesh
-    assert on["held_out"]["psnr"] > off["held_out"]["psnr"] + 1.0  # 23.8 against 21.9 dB
-    assert on["held_out_mesh"]["psnr"] > off["held_out_mesh"]["psnr"] + 0.7  # 23.3 against 22.2 dB
+    assert on["held_out"]["psnr"] > off["held_out"]["psnr"] + 1.0  # 23.5 against 21.9 dB
+    assert on["held_out_mesh"]["psnr"] > off["held_out_mesh"]["psnr"] + 0.7  # 23.7 against 22.2 dB
     assert on["held_out"]["psnr_without_exposure"] < on["held_out"]["psnr"]
