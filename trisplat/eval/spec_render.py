@@ -76,6 +76,24 @@ def vertex_colour_asset(positions, faces, colours) -> PreparedAsset:
                          [np.ones(4)], [None], [None], np.zeros(1, np.int64), 0)
 
 
+def mesh_asset(positions, faces, colours, texture=None) -> PreparedAsset:
+    """The asset a viewer gets from our exporter's arrays (trisplat.io.export_mesh, in their own frame: no up-axis
+    change): vertex colours only (vertex_colour_asset), or with a base-colour TextureMap, through a GLB written and
+    read back (what the file holds: 8-bit PNG texels, split seams)."""
+    if texture is None:
+        return vertex_colour_asset(positions, faces, colours)
+    import tempfile
+    from pathlib import Path
+
+    from trisplat.io.gltf import read_glb
+    from trisplat.io.mesh_files import export_mesh
+
+    with tempfile.TemporaryDirectory(prefix="trisplat-asset-") as tmp:
+        path = Path(tmp) / "asset.glb"
+        export_mesh(path, positions, faces, colours, up=None, texture=texture)
+        return prepare_asset(read_glb(path))
+
+
 def render_asset(asset: PreparedAsset, world_to_camera: np.ndarray, K: np.ndarray, width: int, height: int,
                  background=(1.0, 1.0, 1.0), supersample: int = 1, near: float = 0.01) -> np.ndarray:
     """float32 [H,W,3] sRGB display values in [0,1] of `asset` seen from the camera (OpenCV axes, the asset's

@@ -67,14 +67,6 @@ def equiangularity(positions: torch.Tensor, faces: torch.Tensor) -> torch.Tensor
     return 1.0 - 4.0 * np.sqrt(3.0) * area / s.clamp_min(1e-20)
 
 
-def surface_mask(out, depth: torch.Tensor, outlier: float) -> torch.Tensor:
-    """[H,W] bool: observed depth valid, the render covers the pixel (alpha > 0.5) and its surface lies within
-    `outlier` metres of the observed one: where the map shows what the photo shows."""
-    with torch.no_grad():
-        surf = out.depth / out.alpha.clamp_min(1e-6)
-        return (depth > 0) & (out.alpha > 0.5) & ((surf - depth).abs() < outlier)
-
-
 def keyframe_loss(smap: SlamMap, kf: Keyframe, K: torch.Tensor, sigma: float, cfg: MapConfig) -> torch.Tensor:
     H, W = kf.depth.shape
     out = smap.render(np.linalg.inv(kf.c2w), K, W, H, sigma)
@@ -84,7 +76,8 @@ def keyframe_loss(smap: SlamMap, kf: Keyframe, K: torch.Tensor, sigma: float, cf
     alpha = out.alpha
     surf = out.depth / alpha.clamp_min(1e-6)
     valid = kf.depth > 0
-    mask = surface_mask(out, kf.depth, cfg.outlier_depth)
+    with torch.no_grad():  # where the map shows what the photo shows
+        mask = valid & (alpha > 0.5) & ((surf - kf.depth).abs() < cfg.outlier_depth)
     rgb = out.rgb
     if kf.exposure is not None:
         if kf.fit_exposure:  # on the pixels where the map's surface is the photo's (not its background, not occluders)

@@ -617,25 +617,16 @@ def evaluate_frames(stream: RGBDStream, smap: SlamMap, c2ws, ids, frame_numbers,
 def _mesh_asset(verts: np.ndarray, faces: np.ndarray, colours: np.ndarray, texture=None, exposure=None):
     """The spec renderer's asset of a mesh file's content (vertex colours, or a TextureMap), its colours seen through
     `exposure` [2,3] when given (the texels as the vertex colours: sRGB values)."""
-    from trisplat.eval.spec_render import prepare_asset, vertex_colour_asset
+    import dataclasses
+
+    from trisplat.eval.spec_render import mesh_asset
 
     if exposure is not None:
         colours = apply_exposure(torch.from_numpy(np.asarray(colours, np.float32)), exposure).numpy()
-    if texture is None:
-        return vertex_colour_asset(verts, faces, colours)
-    import dataclasses
-    import tempfile
-
-    from trisplat.io import export_mesh
-    from trisplat.io.gltf import read_glb
-
-    if exposure is not None:
-        img = apply_exposure(torch.from_numpy(texture.image.astype(np.float32) / 255.0), exposure).numpy()
-        texture = dataclasses.replace(texture, image=np.round(img * 255.0).astype(np.uint8))
-    with tempfile.TemporaryDirectory(prefix="trisplat-slam-") as tmp:
-        path = Path(tmp) / "mesh.glb"
-        export_mesh(path, verts, faces, colours, up=None, texture=texture)  # the map's frame, as the cameras'
-        return prepare_asset(read_glb(path))
+        if texture is not None:
+            img = apply_exposure(torch.from_numpy(texture.image.astype(np.float32) / 255.0), exposure).numpy()
+            texture = dataclasses.replace(texture, image=np.round(img * 255.0).astype(np.uint8))
+    return mesh_asset(verts, faces, colours, texture)  # the map's frame, as the cameras
 
 
 def evaluate_mesh_frames(stream: RGBDStream, verts: np.ndarray, faces: np.ndarray, colours: np.ndarray, c2ws, ids,

@@ -140,18 +140,10 @@ def file_psnr(positions: np.ndarray, faces: np.ndarray, colors: np.ndarray, text
               views: list[int], supersample: int, near: float) -> float:
     """Mean PSNR over `views` of the GLB these arrays make (normalised frame), rendered as the glTF specification
     defines it, against the photos."""
-    import tempfile
-    from pathlib import Path
-
     from trisplat.eval.image_metrics import psnr
-    from trisplat.eval.spec_render import prepare_asset, render_asset
-    from trisplat.io.gltf import read_glb
-    from trisplat.io.mesh_files import export_mesh
+    from trisplat.eval.spec_render import mesh_asset, render_asset
 
-    with tempfile.TemporaryDirectory(prefix="trisplat-texture-") as tmp:
-        path = Path(tmp) / "candidate.glb"
-        export_mesh(path, positions, faces, colors, up=None, texture=texture)
-        asset = prepare_asset(read_glb(path))
+    asset = mesh_asset(positions, faces, colors, texture)
     scores = []
     for i in views:
         cam = data.cameras[i]

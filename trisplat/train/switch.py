@@ -388,20 +388,26 @@ class DepthStore(Sequence):
         self.close()
 
 
+def _normal_rays(verts: np.ndarray, faces: np.ndarray, idx: np.ndarray, lift: float):
+    """(trimesh mesh, ray origins, directions) of the outward normal rays of faces `idx`, each from `lift` (scene
+    units) above its face's centroid."""
+    import trimesh
+
+    mesh = trimesh.Trimesh(verts, faces, process=False)
+    normal = mesh.face_normals[idx]
+    return mesh, mesh.triangles_center[idx] + lift * normal, normal
+
+
 def facing_seen(verts: np.ndarray, faces: np.ndarray, unseen: np.ndarray, reach: float) -> np.ndarray:
     """bool [F]: the unseen faces (`unseen`, bool [F]) whose outward normal ray, from just above the face's centroid,
     first meets a face that is not unseen within `reach` (scene units; trimesh's ray caster). Such a face is the
     hidden side of something standing in observed space (a table top's underside above the floor); an unseen face
     that faces nothing, or only more unseen surface, is the back of the scan."""
-    import trimesh
-
     out = np.zeros(len(faces), dtype=bool)
     idx = np.nonzero(unseen)[0]
     if len(idx) == 0:
         return out
-    mesh = trimesh.Trimesh(verts, faces, process=False)
-    normal = mesh.face_normals[idx]
-    origin = mesh.triangles_center[idx] + 1e-4 * max(float(np.ptp(verts, 0).max()), 1e-9) * normal
+    mesh, origin, normal = _normal_rays(verts, faces, idx, 1e-4 * max(float(np.ptp(verts, 0).max()), 1e-9))
     loc, ray, tri = mesh.ray.intersects_location(origin, normal, multiple_hits=False)
     ok = (~unseen[tri]) & (np.linalg.norm(loc - origin[ray], axis=1) <= reach)
     out[idx[ray[ok]]] = True
@@ -457,12 +463,8 @@ def unseen_faces(verts: np.ndarray, faces: np.ndarray, cameras: Sequence, depths
     if bridge_reach is not None:
         return out & ~hidden_bridges(verts, faces, out, bridge_reach, min_piece)
     if enclosed_only and out.any():
-        import trimesh
-
-        mesh = trimesh.Trimesh(verts, faces, process=False)
         idx = np.nonzero(out)[0]
-        normal = mesh.face_normals[idx]
-        origin = mesh.triangles_center[idx] + 1e-3 * tolerance * normal
+        mesh, origin, normal = _normal_rays(verts, faces, idx, 1e-3 * tolerance)
         out[idx] = mesh.ray.intersects_any(origin, normal)
     return out
 
