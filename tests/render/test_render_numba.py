@@ -118,3 +118,24 @@ def test_faces_crossing_the_near_plane_or_off_screen_are_culled_whole():
         assert a.faces_visible == 0 and b.faces_visible == 1
     c = rasterize(off, faces, col, op, 0.5, w2c, K, 40, 32)
     assert c.faces_visible == 0 and c.pairs_evaluated == 0 and c.alpha.max().item() == 0
+
+
+@pytest.mark.parametrize("s,C", [(2, 3), (2, 1), (4, 3)])
+def test_box_pool_is_the_mean_over_each_pixels_samples_value_and_gradient(s, C):
+    """Supersampling's box filter (render.types._pool, a custom autograd function for speed) against the plain
+    reshape-and-mean it replaces, forward and backward, and torch's gradcheck in float64."""
+    from trisplat.render.types import _pool
+
+    g = torch.Generator().manual_seed(s * 10 + C)
+    H, W = 5, 7
+    x = torch.rand(H * s, W * s, C, generator=g, dtype=torch.float64, requires_grad=True)
+    ref = x.reshape(H, s, W, s, C).mean(dim=(1, 3))
+    out = _pool(x, s)
+    assert out.shape == (H, W, C)
+    torch.testing.assert_close(out, ref, rtol=0, atol=1e-12)
+    w = torch.rand(H, W, C, generator=g, dtype=torch.float64)
+    (gx,) = torch.autograd.grad((out * w).sum(), x)
+    (gref,) = torch.autograd.grad((ref * w).sum(), x)
+    torch.testing.assert_close(gx, gref, rtol=0, atol=1e-12)
+    assert torch.autograd.gradcheck(lambda t: _pool(t, s), (x,))
+    assert not x.grad_fn and _pool(x.detach().float(), s).dtype == torch.float32
