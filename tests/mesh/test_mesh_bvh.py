@@ -1,5 +1,6 @@
 """The compiled BVH segment query agrees with the brute-force numpy twin."""
 import numpy as np
+import pytest
 import trimesh
 
 from trisplat.mesh.bvh import build_bvh, segment_any_hit, segment_any_hit_reference
@@ -52,3 +53,27 @@ def test_bvh_on_many_triangles_matches_trimesh_ray_count():
     assert np.all(segment_any_hit(bvh, inside, inside + 2 * d) >= 0)  # every ray from inside leaves the sphere
     assert np.all(segment_any_hit(bvh, inside, inside + 0.05 * d) < 0)  # too short to reach the surface
     assert np.all(segment_any_hit(bvh, 1.5 * d, 3 * d) < 0)  # wholly outside
+
+
+def test_nearest_other_triangle_matches_brute_force():
+    from trisplat.mesh.bvh import build_bvh, nearest_other_triangle
+    from trisplat.mesh.cleanup import closest_points_on_triangles
+
+    rng = np.random.default_rng(3)
+    verts = rng.normal(size=(300, 3))
+    faces = rng.integers(0, 300, size=(200, 3))
+    group = rng.integers(0, 4, size=200)  # the triangles' groups
+    pts = rng.normal(size=(150, 3)) * 1.2
+    pgroup = rng.integers(0, 4, size=150)
+    for max_d in (np.inf, 0.3):
+        t, d, q = nearest_other_triangle(build_bvh(verts, faces), pts, pgroup, group, max_d)
+        tri = verts[faces]
+        for i in range(len(pts)):
+            other = np.nonzero(group != pgroup[i])[0]
+            qq, dd = closest_points_on_triangles(np.repeat(pts[i:i + 1], len(other), 0), tri[other])
+            k = int(np.argmin(dd))
+            if dd[k] > max_d:
+                assert t[i] == -1 and np.isinf(d[i])
+            else:
+                assert d[i] == pytest.approx(dd[k], abs=1e-12) and group[t[i]] != pgroup[i]
+                np.testing.assert_allclose(q[i], qq[k], atol=1e-9)

@@ -137,3 +137,42 @@ def test_oriented_repair_keeps_one_face_each_way_and_the_orientation():
     st = mesh_statistics(v2, f2)
     assert st.non_manifold_edges == 0 and st.consistently_oriented
     assert len(f2) <= len(f) - 2  # the fold is gone, with the face it doubled
+
+
+def test_closest_points_on_triangles_match_trimesh():
+    import trimesh
+
+    from trisplat.mesh.cleanup import closest_points_on_triangles
+
+    rng = np.random.default_rng(0)
+    tri = rng.normal(size=(300, 3, 3))
+    p = rng.normal(size=(300, 3)) * 2
+    q, d = closest_points_on_triangles(p, tri)
+    for k in range(300):  # every Voronoi region of a triangle comes up among random points
+        cp, dd, _ = trimesh.proximity.closest_point(trimesh.Trimesh(tri[k], [[0, 1, 2]], process=False), p[k:k + 1])
+        np.testing.assert_allclose(q[k], cp[0], atol=1e-9)
+        assert d[k] == pytest.approx(dd[0], abs=1e-9)
+
+
+def test_weld_near_pieces_joins_what_nearly_touches_and_nothing_else():
+    import trimesh
+
+    from trisplat.mesh.cleanup import face_components, weld_near_pieces
+
+    floor = trimesh.creation.box(extents=[2.0, 2.0, 0.2])
+    box = trimesh.creation.box(extents=[0.3, 0.3, 0.3])
+    box.apply_translation([0.1, 0.2, 0.1 + 0.15 + 0.01])  # 0.01 above the floor's top, over its face's interior
+    lid = trimesh.creation.box(extents=[0.2, 0.2, 0.05])
+    lid.apply_translation([0.1, 0.2, 0.41 + 0.025 + 0.005])  # 0.005 above the box: a chain, joined through the box
+    far = trimesh.creation.box(extents=[0.3, 0.3, 0.3])
+    far.apply_translation([0.0, 0.0, 3.0])
+    m = trimesh.util.concatenate([floor, box, lid, far])
+    v, f, joins = weld_near_pieces(m.vertices, m.faces, 0.02)
+    n, label = face_components(f, len(v))
+    assert n == 2 and joins == 2
+    moved = np.linalg.norm(v[: len(m.vertices)] - m.vertices, axis=1)
+    assert np.count_nonzero(moved) == 0  # positions unchanged: joins re-index a vertex onto a (new) split point
+    assert len(v) - len(m.vertices) <= 2 and len(f) <= len(m.faces) + 4
+    # nothing within reach: nothing changes
+    v2, f2, joins2 = weld_near_pieces(m.vertices, m.faces, 0.001)
+    assert joins2 == 0 and np.array_equal(f2, m.faces)

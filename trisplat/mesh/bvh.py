@@ -284,3 +284,109 @@ def segment_any_hit_reference(vertices: np.ndarray, faces: np.ndarray, p0: np.nd
     hit &= ~uses(ea) & ~uses(eb)
     first = np.where(hit.any(axis=1), hit.argmax(axis=1), -1)
     return first.astype(np.int64)
+
+
+@nb.njit(cache=True, inline="always")
+def _closest_on_triangle(px, py, pz, tri, t):
+    """The point of triangle `tri[t]` nearest to (px, py, pz) (Ericson, Real-Time Collision Detection, 5.1.5; the
+    readable twin is trisplat.mesh.cleanup.closest_points_on_triangles)."""
+    ax, ay, az = tri[t, 0, 0], tri[t, 0, 1], tri[t, 0, 2]
+    abx, aby, abz = tri[t, 1, 0] - ax, tri[t, 1, 1] - ay, tri[t, 1, 2] - az
+    acx, acy, acz = tri[t, 2, 0] - ax, tri[t, 2, 1] - ay, tri[t, 2, 2] - az
+    apx, apy, apz = px - ax, py - ay, pz - az
+    d1 = abx * apx + aby * apy + abz * apz
+    d2 = acx * apx + acy * apy + acz * apz
+    if d1 <= 0.0 and d2 <= 0.0:
+        return ax, ay, az
+    bpx, bpy, bpz = px - tri[t, 1, 0], py - tri[t, 1, 1], pz - tri[t, 1, 2]
+    d3 = abx * bpx + aby * bpy + abz * bpz
+    d4 = acx * bpx + acy * bpy + acz * bpz
+    if d3 >= 0.0 and d4 <= d3:
+        return tri[t, 1, 0], tri[t, 1, 1], tri[t, 1, 2]
+    vc = d1 * d4 - d3 * d2
+    if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
+        v = d1 / (d1 - d3)
+        return ax + v * abx, ay + v * aby, az + v * abz
+    cpx, cpy, cpz = px - tri[t, 2, 0], py - tri[t, 2, 1], pz - tri[t, 2, 2]
+    d5 = abx * cpx + aby * cpy + abz * cpz
+    d6 = acx * cpx + acy * cpy + acz * cpz
+    if d6 >= 0.0 and d5 <= d6:
+        return tri[t, 2, 0], tri[t, 2, 1], tri[t, 2, 2]
+    vb = d5 * d2 - d1 * d6
+    if vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
+        w = d2 / (d2 - d6)
+        return ax + w * acx, ay + w * acy, az + w * acz
+    va = d3 * d6 - d5 * d4
+    if va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
+        w = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        bx, by, bz = tri[t, 1, 0], tri[t, 1, 1], tri[t, 1, 2]
+        return bx + w * (tri[t, 2, 0] - bx), by + w * (tri[t, 2, 1] - by), bz + w * (tri[t, 2, 2] - bz)
+    den = va + vb + vc
+    if den == 0.0:
+        return ax, ay, az  # a degenerate triangle: its first corner
+    v = vb / den
+    w = vc / den
+    return ax + abx * v + acx * w, ay + aby * v + acy * w, az + abz * v + acz * w
+
+
+@nb.njit(parallel=True, cache=True)
+def _nearest_kernel(points, point_group, tri_group, max_d, tri, order, nmin, nmax, left, right, start, count,
+                    out_t, out_d, out_q):
+    n = points.shape[0]
+    n_chunks = (n + _CHUNK - 1) // _CHUNK
+    for chunk in nb.prange(n_chunks):
+        stack = np.empty(_STACK_DEPTH, np.int64)
+        for i in range(chunk * _CHUNK, min(n, (chunk + 1) * _CHUNK)):
+            px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+            best = max_d * max_d
+            bt = -1
+            sp = 1
+            stack[0] = 0
+            while sp > 0:
+                sp -= 1
+                node = stack[sp]
+                dd = 0.0
+                for k in range(3):
+                    c = points[i, k]
+                    if c < nmin[node, k]:
+                        dd += (nmin[node, k] - c) ** 2
+                    elif c > nmax[node, k]:
+                        dd += (c - nmax[node, k]) ** 2
+                if dd > best:
+                    continue
+                if left[node] < 0:
+                    for j in range(start[node], start[node] + count[node]):
+                        t = order[j]
+                        if tri_group[t] == point_group[i]:
+                            continue
+                        qx, qy, qz = _closest_on_triangle(px, py, pz, tri, t)
+                        d2 = (qx - px) ** 2 + (qy - py) ** 2 + (qz - pz) ** 2
+                        if d2 <= best:
+                            best = d2
+                            bt = t
+                            out_q[i, 0], out_q[i, 1], out_q[i, 2] = qx, qy, qz
+                else:
+                    stack[sp] = left[node]
+                    sp += 1
+                    stack[sp] = right[node]
+                    sp += 1
+            out_t[i] = bt
+            out_d[i] = np.sqrt(best) if bt >= 0 else np.inf
+
+
+def nearest_other_triangle(bvh: TriangleBVH, points: np.ndarray, point_group: np.ndarray, tri_group: np.ndarray,
+                           max_distance: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For each point [N,3], the nearest triangle of another group (tri_group [T] per triangle, point_group [N] per
+    point: a triangle of the point's own group is skipped) within max_distance: (triangle id [N] or -1, distance
+    [N] or inf, the nearest point on it [N,3])."""
+    points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+    n = len(points)
+    out_t = np.full(n, -1, np.int64)
+    out_d = np.full(n, np.inf)
+    out_q = np.zeros((n, 3))
+    if bvh.num_triangles == 0 or n == 0:
+        return out_t, out_d, out_q
+    _nearest_kernel(points, np.ascontiguousarray(point_group, np.int64), np.ascontiguousarray(tri_group, np.int64),
+                    float(max_distance), bvh.tri, bvh.order, bvh.node_min, bvh.node_max, bvh.node_left,
+                    bvh.node_right, bvh.node_start, bvh.node_count, out_t, out_d, out_q)
+    return out_t, out_d, out_q

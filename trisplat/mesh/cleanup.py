@@ -216,3 +216,106 @@ def clean_mesh(vertices: np.ndarray, faces: np.ndarray, config: CleanupConfig = 
         num_flipped=num_flipped,
         num_unreferenced_vertices=int(np.count_nonzero(is_rep & ~used)),
     )
+
+
+def weld_near_pieces(vertices: np.ndarray, faces: np.ndarray, distance: float) -> tuple[np.ndarray, np.ndarray, int]:
+    """Join the vertex-connected pieces of a mesh that come within `distance` of one another (mesh units): for each
+    pair of nearly touching pieces, the vertex of one nearest to the surface of the other is welded onto that
+    surface, onto its nearest point (the face is split there) or onto the face's vertex when the point is one.
+    Pieces of a fused surface that nearly touch (a stool's cloth within a voxel of the floor it stands on, split by
+    the field's sampling) are one object; a pinch at one vertex makes them one piece without moving anything
+    visibly. Rounds repeat until no more pieces join, so chains of touching pieces end up one. Returns vertices
+    [V',3] (split points appended), faces [F',3] and how many joins were made. Nearest faces from a BVH
+    (trisplat.mesh.bvh.nearest_other_triangle)."""
+    from trisplat.mesh.bvh import build_bvh, nearest_other_triangle
+
+    v = np.asarray(vertices, np.float64)
+    faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    joins = 0
+    for _ in range(64):
+        n, label = face_components(faces, len(v))
+        if n < 2:
+            break
+        piece = np.full(len(v), -1, np.int64)
+        piece[faces.reshape(-1)] = np.repeat(label, 3)
+        used = np.unique(faces.reshape(-1))
+        t, d, q = nearest_other_triangle(build_bvh(v, faces), v[used], piece[used], label, float(distance))
+        hit = t >= 0
+        if not hit.any():
+            break
+        sv, t, d, q = used[hit], t[hit], d[hit], q[hit]
+        pa, pb = piece[sv], label[t]
+        lo, hi = np.minimum(pa, pb), np.maximum(pa, pb)
+        # per pair of pieces, their nearest vertex and face; joins of one round go through union-find (a pair already
+        # joined through others is skipped), and a face is split, a vertex moved, once per round
+        order = np.lexsort((d, hi, lo))
+        first = np.ones(len(order), bool)
+        first[1:] = (lo[order][1:] != lo[order][:-1]) | (hi[order][1:] != hi[order][:-1])
+        sel = order[first][np.argsort(d[order[first]], kind="stable")]
+        parent = np.arange(n)
+        remap = np.arange(len(v))
+        busy = np.zeros(len(v), bool)
+        new_v, new_f, split = [], [], []
+        for k in sel:
+            a, b, fi = _root(parent, pa[k]), _root(parent, pb[k]), int(t[k])
+            tri = faces[fi]
+            if a == b or busy[sv[k]] or busy[tri].any():
+                continue
+            at = np.nonzero(np.linalg.norm(v[tri] - q[k], axis=1) <= 1e-12 + 1e-9 * float(distance))[0]
+            if len(at):
+                remap[sv[k]] = tri[at[0]]  # the nearest point is a vertex: weld onto it
+            else:
+                idx = len(v) + len(new_v)
+                new_v.append(q[k])
+                split.append(fi)
+                new_f += [[tri[0], tri[1], idx], [tri[1], tri[2], idx], [tri[2], tri[0], idx]]
+                remap[sv[k]] = idx
+            busy[sv[k]] = True
+            busy[tri] = True
+            parent[a] = b
+            joins += 1
+        if new_v:
+            v = np.concatenate([v, np.asarray(new_v)])
+            remap = np.concatenate([remap, np.arange(len(remap), len(v))])
+        keep_f = np.ones(len(faces), bool)
+        keep_f[split] = False
+        faces = remap[np.concatenate([faces[keep_f], np.asarray(new_f, np.int64).reshape(-1, 3)])]
+        good = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])
+        faces = faces[good]
+    return v, faces, joins
+
+
+def _root(parent: np.ndarray, x: int) -> int:
+    """Union-find: the root of x (path halving)."""
+    while parent[x] != x:
+        parent[x] = parent[parent[x]]
+        x = parent[x]
+    return x
+
+
+def closest_points_on_triangles(p: np.ndarray, tri: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For points p [N,3] and triangles tri [N,3,3]: each triangle's point nearest to its point [N,3] and the
+    distance [N] (the Voronoi-region cases of Ericson, Real-Time Collision Detection, 5.1.5, vectorised)."""
+    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+    ab, ac, ap, bp, cp = b - a, c - a, p - a, p - b, p - c
+
+    def dot(x, y):
+        return np.einsum("ij,ij->i", x, y)
+
+    d1, d2, d3, d4, d5, d6 = dot(ab, ap), dot(ac, ap), dot(ab, bp), dot(ac, bp), dot(ab, cp), dot(ac, cp)
+    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        den = va + vb + vc
+        q = a + ab * (vb / den)[:, None] + ac * (vc / den)[:, None]  # inside the face
+        cases = [
+            (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0), b + ((d4 - d3) / ((d4 - d3) + (d5 - d6)))[:, None] * (c - b),
+            (vb <= 0) & (d2 >= 0) & (d6 <= 0), a + (d2 / (d2 - d6))[:, None] * ac,
+            (d6 >= 0) & (d5 <= d6), c,
+            (vc <= 0) & (d1 >= 0) & (d3 <= 0), a + (d1 / (d1 - d3))[:, None] * ab,
+            (d3 >= 0) & (d4 <= d3), b,
+            (d1 <= 0) & (d2 <= 0), a,
+        ]
+    for k in range(0, len(cases), 2):  # later cases take precedence, as in Ericson's order of tests
+        q = np.where(cases[k][:, None], cases[k + 1], q)
+    q = np.where(np.isfinite(q), q, a)  # degenerate triangles: their first corner
+    return q, np.linalg.norm(p - q, axis=1)
