@@ -27,6 +27,8 @@ LONG_SUITES: dict[str, tuple[str, str]] = {
                "cluster extra; long: tens of minutes)"),
     "texture": ("trisplat.bench.texture", "texturing a finished run (--run RUN): atlas, rows and solve seconds, "
                 "peak memory; regulariser weights scored on held-out training views"),
+    "walk": ("trisplat.bench.walk", "spheres dropped on a run's mesh in a physics engine (PyBullet): how many stand on "
+             "the surface, where the others fell through (RUN as its argument)"),
     "switch-memory": ("trisplat.bench.switch_memory", "peak memory of the soup-to-surface switch on a synthetic "
                       "capture (default 300 photos of 4000x3000; long: tens of minutes)"),
 }
@@ -35,8 +37,8 @@ INDEX_MD = "index.md"
 
 
 def _usage() -> str:
-    lines = ["usage: trisplat bench {render,train,mesh,losses,poses,consumers,slam,blocks,texture,switch-memory,all} [options]   "
-             "(trisplat bench SUITE --help for its options)",
+    lines = ["usage: trisplat bench {render,train,mesh,losses,poses,consumers,slam,blocks,texture,walk,switch-memory,all} "
+             "[options]   (trisplat bench SUITE --help for its options)",
              "", "Each suite writes <name>.json (with machine, versions, commit) and <name>.md into --out "
              f"(default {DEFAULT_OUT}/).", "", "suites:"]  # fmt: skip
     lines += [f"  {name:<9} {desc}" for name, (_, desc) in {**SUITES, **LONG_SUITES}.items()]

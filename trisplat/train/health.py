@@ -157,8 +157,8 @@ def verdict(health: RunHealth, final_psnr: float | None, coverage: float | None,
 
 def add_to_report(page, health: dict, by_layer: dict | None = None) -> None:
     """Put the verdict at the top of the run's HTML report (after its first heading): a red box listing the
-    problems when the result is not trustworthy, a line naming the recoveries otherwise; then, for a run with a
-    far-field layer, the test PSNR by layer (trisplat.eval.layers: which share of the test pixels each shows, and
+    problems when the result is not trustworthy, a line naming the recoveries otherwise; then, for a real
+    capture's connected surface, the test PSNR by layer (trisplat.eval.layers: which share of the test pixels each shows, and
     how well)."""
     import html
     from pathlib import Path
@@ -179,8 +179,9 @@ def add_to_report(page, health: dict, by_layer: dict | None = None) -> None:
         body += ("<div id='health-warnings' style='border:1px solid #c80;padding:6px 12px;background:#ffd'><b>Warnings"
                  "</b><ul>" + "".join(f"<li>{html.escape(w)}</li>" for w in health["warnings"]) + "</ul></div>")
     if by_layer:
-        names = {"surface": "connected surface", "far_field": "far-field layer", "background_sphere":
-                 "background sphere", "empty": "nothing (background colour)"}
+        names = {"surface": "the connected surface (its piece that shows the most)", "other_pieces":
+                 "other pieces of the surface", "far_field": "far-field layer (independent triangles)",
+                 "background_sphere": "background sphere", "empty": "nothing (background colour)"}
         rows = "".join(f"<tr><td>{html.escape(names.get(k, k))}</td><td>{100 * v['pixels']:.1f}%</td>"
                        f"<td>{v['psnr']:.2f} dB</td></tr>" for k, v in by_layer.items())
         body += ("<table id='layers'><caption>Test pixels by layer (the opaque mesh, one sample per pixel centre)"
