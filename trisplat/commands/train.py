@@ -305,10 +305,16 @@ def result_shape(m: dict) -> str:
     if m.get("connected"):
         mesh = m.get("mesh") or {}
         pieces = int(mesh.get("connected_components", 1) or 1)
-        if pieces > 1:
-            return (f"a connected surface in {pieces} pieces (the largest holds "
-                    f"{100 * float(mesh.get('largest_component_fraction', 0.0)):.0f}% of the faces)")
-        return "one connected surface"
+        shape = (f"a connected surface in {pieces} pieces (the largest holds "
+                 f"{100 * float(mesh.get('largest_component_fraction', 0.0)):.0f}% of the faces)" if pieces > 1
+                 else "one connected surface")
+        layers = m.get("psnr_by_layer") or {}
+        if layers:  # a real capture: how much of what the test views show is that one surface
+            shape += f", showing {100 * layers.get('surface', {}).get('pixels', 0.0):.0f}% of the test pixels"
+            far = layers.get("far_field", {}).get("pixels", 0.0)
+            if far:
+                shape += f" (a far-field soup of independent triangles {100 * far:.0f}%)"
+        return shape
     failure = m.get("switch_failure") or {}
     error = str(failure.get("error", "")).splitlines()[0][:160] if failure else ""
     failed = (f"the switch to a surface failed at step {failure['step']} ({error})" if failure.get("step") is not None
@@ -375,8 +381,9 @@ def final_lines(m: dict, wall_s: float, run_dir) -> list[str]:
     health = m.get("health") or {"ok": True, "problems": []}
     what = "done" if health["ok"] else "finished, but the result is NOT trustworthy"
     shape = result_shape(m)
-    far = (f" + a far-field layer of {m['far_field_faces']} faces (what lies beyond the inner box, background sphere)"
-           if m.get("far_field_faces") else "")
+    soup_far = int(m.get("far_field_faces") or 0) - int(m.get("background_faces") or 0)
+    far = (f" + a far-field soup of {soup_far} independent faces beyond the inner box" if soup_far > 0 else "") + (
+        f" + a background sphere of {m['background_faces']} faces" if m.get("background_faces") else "")
     cov = f", {100 * m['coverage']:.1f}% of test pixels covered" if m.get("coverage") is not None else ""
     # what a user gets is the file: its score comes first when there is one (an unlit file cannot hold the
     # model's view-dependent colour; lego at 30 min: model 27.4 dB, its SH band 0 alone 26.6, mesh.glb 26.0)

@@ -230,10 +230,16 @@ class TrainConfig:
     """Fusion switch: faces of the fused surface that no training view sees. 'drop_enclosed' drops those facing the
     surface itself (an object's inside wall, joined to its outside where its underside was never seen), 'drop'
     every one, 'keep' none (trisplat.train.switch.SurfaceConfig.unseen_faces)."""
+    far_field: Literal["fused", "soup"] = "fused"
+    """Captures without alpha (real photos of a room, a table, a street) at the fusion switch: 'fused' fuses the
+    whole scene, from the table at the centre to the floor and the walls, into ONE connected surface, on a sparse
+    grid over the contracted scene (trisplat.mesh.contraction: voxels grow with the distance); 'soup' fuses only the
+    inner box [-1, 1]^3 where the cameras are and keeps the soup beyond it as independent triangles behind the
+    surface (a far-field layer; the default before issue 49)."""
     background_sphere: bool = True
-    """Captures without alpha (real photos): at the switch, put an opaque sphere coloured from the photos behind the
-    far-field layer (trisplat.scene.background), so no gap shows the flat background colour; it is exported with the
-    mesh as its last faces."""
+    """Captures without alpha (real photos): at the switch, put an opaque sphere coloured from the photos behind
+    everything (trisplat.scene.background), so no gap shows the flat background colour (sky, a window, what no
+    photo saw twice); it is exported with the mesh as its last faces."""
     surface_opacity: float = 0.9
     """Vertex opacity the fused surface starts with (fusion switch)."""
     surface_sigma: Annotated[float | None, tyro.conf.arg(metavar="FLOAT|None")] = 0.1

@@ -29,6 +29,12 @@ BOX_PERCENTILE = 0.5  # the box of the soup's vertices between these percentiles
 BOX_MARGIN = 0.1  # ... grown by this fraction of its size on every side
 INNER_RADIUS = 1.0  # normalised frame: the half-side of the inner box of a capture without a content box (the cameras
 # lie within 1/1.1 of the centre); the soup beyond it is the far field (walls, distant furniture, sky) and stays a soup
+PRE_DECIMATE = 3.0  # contracted fusion: the marching-cubes surface is decimated to this x the face budget first
+REGION_BANDS = (0.0, 0.5, 1.0, 1.5, 2.0)  # contracted fusion: shells of the contracted cube (L-infinity norm) whose
+# faces are decimated to their share of the training pixels (_ContractedSpace.reduce)
+MIN_REGION_SHARE = 0.02  # ... at least this share of the budget each
+GROUND_THICKNESS = 0.05  # contracted fusion: the closed floor's thickness below its plane (normalised units)
+JOIN_VOXELS = 2.0  # contracted fusion: pieces of the surface closer than this (contracted voxels) are joined
 MIN_DEPTH_VOXELS = 3.0  # unseen space is solid at least this many voxels behind what was observed (a thinner shell
 # is breached by the noise of a coarse grid)
 
@@ -37,10 +43,23 @@ MIN_DEPTH_VOXELS = 3.0  # unseen space is solid at least this many voxels behind
 class SurfaceConfig:
     """Settings of the switch. Lengths in voxels of the fusion grid unless said otherwise."""
 
+    space: Literal["box", "contracted"] = "box"
+    """where to fuse: 'box', a dense grid over a box of the normalised frame (the `bounds` given, or the soup's
+    extent: an object); 'contracted', the whole scene out to outer_radius on a sparse grid over the contracted cube
+    (`trisplat.mesh.contraction`: voxels grow with distance; a real capture's room, floor and walls)."""
+    ground_reach: float = 0.0
+    """space 'contracted': with a floor found under the cameras (trisplat.mesh.ground), the floor is closed and what
+    no view observed between it and something solid up to this height above it (normalised units) is solid: things
+    stand on the floor (0: no ground)."""
+    outer_radius: float | None = None
+    """space 'contracted': nothing farther than this from the origin (normalised units) is fused (None: fusion_radius
+    of the soup, beyond nearly all of it)."""
     resolution: int = 512
-    """voxels along the longest side of the fused box (lowered to fit max_voxels)."""
+    """space 'box': voxels along the longest side of the fused box (lowered to fit max_voxels); 'contracted': voxels
+    across the inner cube [-1, 1]^3 (where the cameras are; the voxels beyond grow with the contraction)."""
     max_voxels: int = 48_000_000
-    """grid size cap (memory: about 9 bytes per voxel; time: voxels x views projections)."""
+    """grid size cap, dense voxels ('box') or allocated ones ('contracted'; the resolution is lowered until it
+    fits) (memory: about 10 bytes per voxel; time: voxels x views projections)."""
     truncation_voxels: float = 3.0
     """TSDF truncation distance (voxels). The trainer passes trisplat.train.trainer.surface_truncation (6 voxels for
     objects, 3 for real photos, or --surface-truncation); SLAM and the merge of partitioned blocks use this default."""
@@ -77,7 +96,7 @@ class SurfaceConfig:
     (a background to be free). Whether the cameras lie inside the soup's hull is not used: a real photo of an object
     from outside has no free pixel either (every pixel sees something), and floaters around an object would put
     its cameras inside. tests/mesh/test_room_walls.py: with True a room seen from inside loses its walls."""
-    unseen_faces: Literal["keep", "drop_enclosed", "drop", "drop_but_bridges"] = "keep"
+    unseen_faces: Literal["keep", "drop_enclosed", "drop", "drop_but_bridges", "drop_but_joins"] = "keep"
     """faces no view saw (every vertex farther than the truncation from each view's surface depth): bounding unseen
     space leaves the far side of a shell behind what the views measured. 'drop_enclosed' drops those whose outward
     normal looks at the surface itself (a ray from the face along its normal hits the mesh): the inside wall of an
@@ -85,7 +104,9 @@ class SurfaceConfig:
     extract_surface's cavity test; an unseen underside that faces away into open space is kept, closing the object.
     'drop' drops every unseen face (a room scan: the back of its walls faces outwards, into nothing).
     'drop_but_bridges' drops them all but the hidden sides that join two pieces of the seen surface: a table top's
-    underside, never seen, faces the floor and joins the top to its legs (hidden_bridges)."""
+    underside, never seen, faces the floor and joins the top to its legs (hidden_bridges). 'drop_but_joins' keeps
+    every group of unseen faces that joins two seen pieces, whatever it faces (the contracted fusion of a whole scene:
+    the unseen foot of a stool between its seen sides and the floor)."""
     hidden_side_reach: float = 1.0
     """'drop_but_bridges': how far (scene units: metres in SLAM) an unseen face's normal ray looks for a seen face."""
     fill_holes_px: int = 2
@@ -106,8 +127,13 @@ class SwitchReport:
     soup_faces: int = 0
     soup_vertices: int = 0
     views: int = 0
+    space: str = "box"
     grid: tuple[int, int, int] = (0, 0, 0)
     voxel: float = 0.0
+    allocated_voxels: int = 0
+    joins: int = 0
+    ground: dict | None = None
+    pixel_share: list | None = None
     truncation_voxels: float = 0.0
     carved_fraction: float | None = None
     marching_cubes_faces: int = 0
@@ -126,7 +152,10 @@ class SwitchReport:
     def summary(self) -> str:
         return (f"soup {self.soup_faces} faces -> surface {self.faces} faces / {self.vertices} vertices "
                 f"(V/F {self.vertices / max(self.faces, 1):.2f}; fused {self.views} views on a "
-                f"{'x'.join(map(str, self.grid))} grid, truncation {self.truncation_voxels:.1f} voxels; "
+                f"{'x'.join(map(str, self.grid))} grid"
+                + (f" over the contracted scene ({self.allocated_voxels / 1e6:.1f}M voxels allocated)"
+                   if self.space == "contracted" else "")
+                + f", truncation {self.truncation_voxels:.1f} voxels; "
                 f"{self.pieces_dropped} of {self.pieces} pieces dropped; "
                 f"{self.render_s + self.fuse_s + self.mesh_s:.1f} s)")
 
@@ -248,9 +277,10 @@ def transfer_attributes(scene: TriangleScene, points: np.ndarray, neighbours: in
     return sh, torch.as_tensor((opac[idx] * w).sum(1), dtype=torch.float32)
 
 
-def _visible(cam, depth: np.ndarray | None, points: np.ndarray, tolerance: float):
+def _visible(cam, depth: np.ndarray | None, points: np.ndarray, tolerance):
     """(indices into points, their pixel rows, columns) of the points [P,3] that `cam` sees: in front of it, inside
-    its image, within `tolerance` scene units of its surface depth [H,W] there (depth None: no occlusion test)."""
+    its image, within `tolerance` scene units (one for all, or one per point [P]) of its surface depth [H,W] there
+    (depth None: no occlusion test)."""
     R, t = cam.world_to_camera[:3, :3], cam.world_to_camera[:3, 3]
     pc = points @ R.T + t
     z = pc[:, 2]
@@ -261,23 +291,25 @@ def _visible(cam, depth: np.ndarray | None, points: np.ndarray, tolerance: float
     col, row = u[ok].astype(np.int64), v[ok].astype(np.int64)
     if depth is None:
         return np.nonzero(ok)[0], row, col
-    vis = np.abs(depth[row, col] - z[ok]) <= tolerance
+    tol = tolerance[ok] if np.ndim(tolerance) else tolerance
+    vis = np.abs(depth[row, col] - z[ok]) <= tol
     return np.nonzero(ok)[0][vis], row[vis], col[vis]
 
 
-def carved_fraction(verts: np.ndarray, faces: np.ndarray, cameras: Sequence, depths: Sequence, box: np.ndarray,
-                    tolerance: float, views: int = 16) -> float:
-    """Share of the soup's pixels that see a point inside `box` [2,3] where the fused surface (verts [V,3], faces
-    [F,3]) shows nothing, or something more than `tolerance` (scene units) farther away: what the views saw and the
-    fusion carved away. `views` evenly spaced cameras of `cameras` are rendered (z-buffer), against their soup depth
-    maps in `depths` (inf: nothing seen, nan: unknown, both not counted)."""
+def carved_fraction(verts: np.ndarray, faces: np.ndarray, cameras: Sequence, depths: Sequence, box: np.ndarray | None,
+                    tolerance, views: int = 16, radius: float = np.inf) -> float:
+    """Share of the soup's pixels that see a point inside `box` [2,3] (None: anywhere) and within `radius` of the
+    origin where the fused surface (verts [V,3], faces [F,3]) shows nothing, or something more than `tolerance`
+    (scene units; a number, or a function of the points [N,3] giving one per point) farther away: what the views saw
+    and the fusion carved away. `views` evenly spaced cameras of `cameras` are rendered (z-buffer), against their
+    soup depth maps in `depths` (inf: nothing seen, nan: unknown, both not counted)."""
     from trisplat.data.rgbd import backproject
     from trisplat.render.hard import rasterize_hard
 
     pts = torch.as_tensor(verts, dtype=torch.float32)
     tri = torch.as_tensor(np.asarray(faces), dtype=torch.int32)
     grey = torch.zeros((len(verts), 3))
-    b = np.asarray(box, dtype=np.float64)
+    b = None if box is None else np.asarray(box, dtype=np.float64)
     seen = carved = 0
     for n in np.unique(np.linspace(0, len(cameras) - 1, max(1, min(views, len(cameras)))).round().astype(int)):
         cam, d = cameras[n], np.asarray(depths[n])
@@ -285,7 +317,9 @@ def carved_fraction(verts: np.ndarray, faces: np.ndarray, cameras: Sequence, dep
         w2c = np.asarray(cam.world_to_camera, dtype=np.float64)
         # the soup's surface points of the pixels that saw something (inf: nothing, nan: unknown)
         world, rc = backproject(np.where(np.isfinite(d), d, 0.0), np.asarray(cam.K), np.linalg.inv(w2c), 1)
-        inside = ((world >= b[0]) & (world <= b[1])).all(1)
+        inside = np.linalg.norm(world, axis=1) <= radius
+        if b is not None:
+            inside &= ((world >= b[0]) & (world <= b[1])).all(1)
         if not inside.any():
             continue
         ys, xs = rc[inside, 0], rc[inside, 1]
@@ -294,11 +328,12 @@ def carved_fraction(verts: np.ndarray, faces: np.ndarray, cameras: Sequence, dep
         mesh = out.depth.reshape(H, W).numpy().astype(np.float64)
         mesh = np.where(out.face_id.reshape(H, W).numpy() >= 0, mesh, np.inf)
         seen += len(ys)
-        carved += int((mesh[ys, xs] > d[ys, xs] + tolerance).sum())
+        tol = tolerance(world[inside]) if callable(tolerance) else tolerance
+        carved += int((mesh[ys, xs] > d[ys, xs] + tol).sum())
     return carved / max(seen, 1)
 
 
-def seen_counts(cameras: Sequence, depths: Sequence, points: np.ndarray, tolerance: float) -> np.ndarray:
+def seen_counts(cameras: Sequence, depths: Sequence, points: np.ndarray, tolerance) -> np.ndarray:
     """Number of views that see each of `points` [P,3] (see _visible) [P]."""
     cnt = np.zeros(len(points))
     for n, cam in enumerate(cameras):
@@ -306,7 +341,7 @@ def seen_counts(cameras: Sequence, depths: Sequence, points: np.ndarray, toleran
     return cnt
 
 
-def image_colors(cameras: Sequence, images: Iterable, depths: Sequence | None, points: np.ndarray, tolerance: float
+def image_colors(cameras: Sequence, images: Iterable, depths: Sequence | None, points: np.ndarray, tolerance
                  ) -> tuple[np.ndarray, np.ndarray]:
     """Mean RGB [P,3] of `points` over the views that see them (the point projects into the image, in front of the
     camera, within `tolerance` scene units of that view's surface depth; depths None: wherever it projects into the
@@ -420,8 +455,9 @@ def hidden_bridges(verts: np.ndarray, faces: np.ndarray, unseen: np.ndarray, rea
     face a seen face within `reach` (facing_seen) are grouped into vertex-connected groups; a group is kept when its
     vertices touch two or more pieces of the seen faces with at least `min_piece` x the largest piece's faces (a
     table top's underside, touching the top's rim and the legs' tops; smaller pieces are floaters, dropped later).
-    Hidden sides that join nothing are guesses the surface does not need, and stay dropped."""
-    cand = facing_seen(verts, faces, unseen, reach)
+    Hidden sides that join nothing are guesses the surface does not need, and stay dropped. reach inf: every unseen
+    face is a candidate (no rays: the groups that join seen pieces are kept whatever they face)."""
+    cand = unseen.copy() if math.isinf(reach) else facing_seen(verts, faces, unseen, reach)
     out = np.zeros(len(faces), dtype=bool)
     if not cand.any() or unseen.all():
         return out
@@ -453,7 +489,7 @@ def _fast_rays(rep) -> bool:
     return False
 
 
-def unseen_faces(verts: np.ndarray, faces: np.ndarray, cameras: Sequence, depths: Sequence, tolerance: float,
+def unseen_faces(verts: np.ndarray, faces: np.ndarray, cameras: Sequence, depths: Sequence, tolerance,
                  enclosed_only: bool, bridge_reach: float | None = None, min_piece: float = 0.0) -> np.ndarray:
     """bool [F]: faces none of whose vertices any view sees (seen_counts with `tolerance`); with enclosed_only, only
     those whose outward normal ray (from just above the face's centroid) hits the mesh (trimesh's ray caster); with
@@ -464,9 +500,218 @@ def unseen_faces(verts: np.ndarray, faces: np.ndarray, cameras: Sequence, depths
         return out & ~hidden_bridges(verts, faces, out, bridge_reach, min_piece)
     if enclosed_only and out.any():
         idx = np.nonzero(out)[0]
-        mesh, origin, normal = _normal_rays(verts, faces, idx, 1e-3 * tolerance)
+        lift = 1e-3 * (tolerance[faces[idx]].min(1) if np.ndim(tolerance) else tolerance)
+        mesh, origin, normal = _normal_rays(verts, faces, idx, lift[:, None] if np.ndim(lift) else lift)
         out[idx] = mesh.ray.intersects_any(origin, normal)
     return out
+
+
+class _BoxSpace:
+    """Fusion in a box of the normalised frame: a dense grid (`trisplat.mesh.fusion`); coordinates are the world's."""
+
+    def __init__(self, box: np.ndarray, resolution: int, rep: SwitchReport):
+        self.box, self.res = box, resolution
+        rep.grid, rep.voxel = grid_shape(box, resolution)
+        self.voxel = rep.voxel
+        self.side = float((box[1] - box[0]).max())  # lengths given as fractions of the fused region are of this
+        self.region = dict(box=box)  # carved_fraction's region
+
+    def fuse(self, cameras, source, store, trunc_vox: float, max_depth: float, rep: SwitchReport):
+        """verts [V,3] (this space's coordinates), faces [F,3] of the fused surface of the depth maps `source` (an
+        iterable; `store`: the same maps again, when a second pass needs them); lengths in voxels."""
+        grid = fuse_depths(cameras, source, self.box, self.res, trunc_vox, max_depth=max_depth * self.voxel)
+        return extract_surface(grid)
+
+    def to_world(self, v: np.ndarray) -> np.ndarray:
+        return v
+
+    def tolerance(self, points_world: np.ndarray, trunc_vox: float):
+        return trunc_vox * self.voxel
+
+    def reduce(self, verts, faces, target: int):
+        """The marching-cubes surface, lighter before the passes over its faces (nothing here: a box's surface
+        is about the size of its face budget)."""
+        return verts, faces
+
+    def decimate(self, verts, faces, target: int):
+        """Quadric decimation to `target` faces (fast-simplification)."""
+        import fast_simplification
+
+        v, f = fast_simplification.simplify(verts, faces.astype(np.int32), target_count=int(target))
+        return np.asarray(v, np.float64), np.asarray(f, np.int64)
+
+    def join(self, verts, faces, rep: SwitchReport):
+        """Pieces that nearly touch, joined (nothing here)."""
+        return verts, faces
+
+
+class _ContractedSpace:
+    """Fusion of the whole scene within `radius` of the origin in the contracted cube: a sparse grid
+    (`trisplat.mesh.contracted_fusion`); mesh coordinates are contracted ones (decimation there spends faces by
+    angle, not by metre), lengths in contracted voxels, tolerances in the world grow with the contraction's
+    stretch."""
+
+    def __init__(self, resolution: int, radius: float, max_voxels: int, rep: SwitchReport, ground_reach: float = 0.0):
+        from trisplat.mesh.contracted_fusion import ContractedGrid
+        from trisplat.mesh.contraction import outer_extent
+
+        self.radius, self.max_voxels, self.rep = float(radius), int(max_voxels), rep
+        self.ground, self.ground_reach = None, float(ground_reach)
+        self.pixel_share = None  # of the training pixels, per shell of REGION_BANDS
+        self.extent = outer_extent(self.radius)
+        self._set(ContractedGrid.for_resolution(resolution, self.extent))
+        self.side = 2.0  # the inner cube's side: the scale of lengths given as fractions
+        # what the carve check counts: the inner cube, where the object at the centre of a capture is (the far
+        # soup's layers are averaged away by any fusion: bonsai's 33% carved overall, 1% in the inner cube)
+        self.region = dict(box=inner_box(), radius=self.radius)
+
+    def _set(self, grid) -> None:
+        self.grid = grid
+        self.voxel = grid.voxel
+        self.rep.grid, self.rep.voxel = (grid.size,) * 3, grid.voxel
+
+    def fuse(self, cameras, source, store, trunc_vox: float, max_depth: float, rep: SwitchReport):
+        """As _BoxSpace.fuse: every map of `source` allocates, then the maps of `store` are fused."""
+        from trisplat.mesh.contracted_fusion import ContractedGrid, ContractedTSDF
+
+        if self.ground is None and self.ground_reach > 0:
+            from trisplat.eval.walk import up_direction
+            from trisplat.mesh.ground import estimate_ground
+
+            self.ground = estimate_ground(cameras, store if source is store else _Tee(source, store), up_direction(
+                cameras), GROUND_THICKNESS, self.ground_reach, radius=self.radius)
+            source = store
+            rep.ground = None if self.ground is None else self.ground.to_dict()
+        while True:
+            vol = ContractedTSDF(self.grid, trunc_vox, max_depth, self.radius, max_voxels=self.max_voxels,
+                                 ground=self.ground)
+            for n, d in enumerate(source):
+                vol.allocate(cameras[n], d)
+            try:
+                vol.finish_allocation()
+                break
+            except MemoryError as exc:
+                res = int(round(2.0 / self.voxel * 0.85))
+                if res < 32:
+                    raise
+                rep.notes.append(f"{exc}; fused at {res} voxels across the inner cube instead")
+                self._set(ContractedGrid.for_resolution(res, self.extent))
+                source = store
+        rep.allocated_voxels = vol.allocated_voxels
+        if self.pixel_share is None:
+            self.pixel_share = self.pixel_shares(cameras, store)
+            rep.pixel_share = [round(float(x), 4) for x in self.pixel_share]
+        _integrate_batches(vol, cameras, store)
+        return vol.surface()
+
+    def to_world(self, v: np.ndarray) -> np.ndarray:
+        from trisplat.mesh.contraction import uncontract
+
+        return uncontract(v)
+
+    def reduce(self, verts, faces, target: int):
+        """A whole scene's marching-cubes surface holds millions of faces (bonsai: 6M at 314 voxels across the inner
+        cube), most of them on the room, which covers a large part of the contracted cube, and few on the object at
+        its centre, which covers a third of the photos (bonsai's tree and stool: 17k of 4.4M): decimated as one,
+        the object kept a few thousand faces. So each shell of the contracted cube (REGION_BANDS) is decimated to
+        its share of PRE_DECIMATE x the face budget, the share of the training pixels that see it (at least
+        MIN_REGION_SHARE), its borders with the other shells locked (pyfqmr), and the shells are joined again
+        along them. The marching-cubes surface is closed, so those are its only borders."""
+        if len(faces) <= PRE_DECIMATE * target:
+            return verts, faces
+        import pyfqmr
+
+        m = np.abs(verts[faces].mean(1)).max(1)
+        region = np.searchsorted(REGION_BANDS, m, side="right") - 1
+        share = np.maximum(self.pixel_share, MIN_REGION_SHARE)
+        share /= share.sum()
+        parts_v, parts_f, offset = [], [], 0
+        for r in range(len(REGION_BANDS) - 1):
+            sel = region == r
+            if not sel.any():
+                continue
+            used, local = np.unique(faces[sel].reshape(-1), return_inverse=True)
+            v, f = verts[used], local.reshape(-1, 3)
+            budget = int(share[r] * PRE_DECIMATE * target)
+            if len(f) > budget:
+                simp = pyfqmr.Simplify()
+                simp.setMesh(v, f.astype(np.int32))
+                simp.simplify_mesh(target_count=budget, aggressiveness=7, preserve_border=True, verbose=False)
+                v, f, _ = simp.getMesh()
+            parts_v.append(np.asarray(v, np.float64))
+            parts_f.append(np.asarray(f, np.int64) + offset)
+            offset += len(v)
+        v, f = np.concatenate(parts_v), np.concatenate(parts_f)
+        # the locked borders kept their positions exactly: the same position is the same vertex again
+        _, first, inverse = np.unique(v, axis=0, return_index=True, return_inverse=True)
+        return v[first], inverse.reshape(-1)[f]
+
+    def decimate(self, verts, faces, target: int):
+        """Quadric decimation to `target` faces (fast-simplification), in contracted coordinates."""
+        import fast_simplification
+
+        v, f = fast_simplification.simplify(verts, faces.astype(np.int32), target_count=int(target))
+        return np.asarray(v, np.float64), np.asarray(f, np.int64)
+
+    def pixel_shares(self, cameras, depths, stride: int = 4) -> np.ndarray:
+        """Share of the training pixels (every `stride`-th of each depth map) whose surface point lies in each shell
+        of REGION_BANDS."""
+        from trisplat.mesh.contraction import contract
+
+        counts = np.zeros(len(REGION_BANDS) - 1)
+        for cam, d in zip(cameras, depths):
+            d = np.asarray(d)[::stride, ::stride]
+            rows, cols = np.nonzero(np.isfinite(d) & (d > 0))
+            if len(rows) == 0:
+                continue
+            ray = np.stack([cols * stride + 0.5, rows * stride + 0.5, np.ones(len(rows))], 1) @ np.linalg.inv(
+                np.asarray(cam.K, np.float64)).T
+            c2w = np.linalg.inv(np.asarray(cam.world_to_camera, np.float64))
+            m = np.abs(contract((ray * d[rows, cols, None]) @ c2w[:3, :3].T + c2w[:3, 3])).max(1)
+            counts += np.bincount(np.clip(np.searchsorted(REGION_BANDS, m, side="right") - 1, 0, len(counts) - 1),
+                                  minlength=len(counts))
+        return counts / max(counts.sum(), 1.0)
+
+    def join(self, verts, faces, rep: SwitchReport):
+        """Pieces that come within JOIN_VOXELS of each other, joined at their closest vertices (weld_near_pieces):
+        the fused scene's objects stand on its floor, a voxel or so from it where the field's sampling splits
+        them (bonsai's stool and the floor: 1.05 voxels at the closest)."""
+        from trisplat.mesh.cleanup import weld_near_pieces
+
+        verts, faces, joins = weld_near_pieces(verts, faces, JOIN_VOXELS * self.voxel)
+        rep.joins += joins
+        return verts, faces
+
+    def tolerance(self, points_world: np.ndarray, trunc_vox: float):
+        from trisplat.mesh.contraction import contract, stretch
+
+        return trunc_vox * self.voxel * stretch(contract(points_world))
+
+
+class _Tee:
+    """The maps of `source` (a generator that also stores each map in `store`), all drawn first, then read from
+    `store`: estimate_ground reads every map once, the allocation after it reads them again."""
+
+    def __init__(self, source, store):
+        for _ in source:
+            pass
+        self.store = store
+
+    def __iter__(self):
+        return iter(self.store[n] for n in range(len(self.store)))
+
+
+def _integrate_batches(vol, cameras: Sequence, depths: Sequence, batch_bytes: int = 256 * 2**20) -> None:
+    """Fuse every view of `depths` (a DepthStore) into `vol`, about `batch_bytes` of depth maps at a time."""
+    Hm, Wm = max(c.height for c in cameras), max(c.width for c in cameras)
+    per = int(max(1, min(len(cameras), batch_bytes // (4 * Hm * Wm))))
+    stack = np.empty((per, Hm, Wm), np.float32)
+    for n0 in range(0, len(cameras), per):
+        batch = cameras[n0: n0 + per]
+        for b, cam in enumerate(batch):
+            stack[b] = np.nan
+            stack[b, : cam.height, : cam.width] = depths[n0 + b]
+        vol.integrate(batch, stack[: len(batch)])
 
 
 def soup_to_surface(scene: TriangleScene, cameras: Sequence, render: Callable[[int], object],
@@ -476,23 +721,29 @@ def soup_to_surface(scene: TriangleScene, cameras: Sequence, render: Callable[[i
     """One connected surface from a trained soup.
 
     cameras: the training cameras (trisplat.cameras.Camera); render(n) -> RenderOutput of the soup seen by
-    cameras[n] (its face_id is used); bounds: float [2,3] content box (normalised frame) or None; images(n) ->
+    cameras[n] (its face_id is used); bounds: float [2,3] content box (normalised frame) or None (with
+    config.space 'box'; 'contracted' fuses the whole scene out to config.outer_radius and ignores it); images(n) ->
     the [H,W,3] photo of cameras[n]: when given, each vertex's base colour (SH DC) is the mean colour of the photos
     that see it (sharper than the soup's, whose layers blur), the higher bands come from the soup. Returns a
     TriangleScene with the surface's vertices and faces (int32, outward), SH transferred from the soup, the soup's
     opacity floor and vertex opacities of at least `config.opacity`, and a report. Raises ValueError when the
     renders show nothing to fuse.
     """
-    rep = SwitchReport(soup_faces=scene.num_faces, soup_vertices=scene.num_vertices, views=len(cameras))
+    rep = SwitchReport(soup_faces=scene.num_faces, soup_vertices=scene.num_vertices, views=len(cameras),
+                       space=config.space)
     pos = scene.positions.detach().cpu().numpy().astype(np.float64)
     fc = scene.faces.detach().cpu().numpy().astype(np.int64)
-    box = fusion_box(pos, bounds)
-    res = fitting_resolution(box, config.resolution, config.max_voxels)
-    rep.grid, rep.voxel = grid_shape(box, res)
-    side = float((box[1] - box[0]).max())
+    if config.space == "contracted":
+        space = _ContractedSpace(config.resolution, config.outer_radius or fusion_radius(pos), config.max_voxels, rep,
+                                 config.ground_reach)
+    else:
+        box = fusion_box(pos, bounds)
+        space = _BoxSpace(box, fitting_resolution(box, config.resolution, config.max_voxels), rep)
     truncations = [config.truncation_voxels]
-    truncations += [f * side / rep.voxel for f in config.retry_truncations if f * side / rep.voxel > truncations[-1]]
-    max_depth = max(config.max_depth_fraction * side, MIN_DEPTH_VOXELS * rep.voxel)
+    truncations += [f * space.side / rep.voxel for f in config.retry_truncations
+                    if f * space.side / rep.voxel > truncations[-1]]
+    max_depth = max(config.max_depth_fraction * space.side / rep.voxel, MIN_DEPTH_VOXELS)  # voxels
+    target = int(min(config.max_faces, max(config.face_ratio * scene.num_faces, 1_000)))  # the face budget
     # the depth maps outlive the fusion (seen faces, photo colours): in memory up to depth_memory_mb, then on disk
     with DepthStore(int(config.depth_memory_mb * 2**20)) as depths:
         covered = False
@@ -517,8 +768,8 @@ def soup_to_surface(scene: TriangleScene, cameras: Sequence, render: Callable[[i
             t0 = time.perf_counter()
             render_s = rep.render_s
             # the first fusion renders the views; a retry fuses the same depth maps again (from the store)
-            grid = fuse_depths(cameras, depth_maps() if attempt == 0 else depths, box, res, trunc_vox,
-                               max_depth=max_depth)
+            verts, faces = space.fuse(cameras, depth_maps() if attempt == 0 else depths, depths, trunc_vox,
+                                      max_depth, rep)
             rep.fuse_s += time.perf_counter() - t0 - (rep.render_s - render_s)
             if not covered:
                 raise ValueError("the soup covers no pixel of any training view: nothing to turn into a surface")
@@ -529,18 +780,21 @@ def soup_to_surface(scene: TriangleScene, cameras: Sequence, render: Callable[[i
                 progress(f"fused {len(cameras)} depth maps, truncation {trunc_vox:.1f} voxels ({rep.render_s:.1f} s "
                          f"rendering, {rep.fuse_s:.1f} s fusing); extracting the surface")
             t0 = time.perf_counter()
-            verts, faces = extract_surface(grid)
-            del grid
             rep.marching_cubes_faces = len(faces)
             if len(faces) == 0:
                 raise ValueError("depth fusion found no surface (every voxel is free): the soup's renders are empty")
+            verts, faces = space.reduce(verts, faces, target)
+            verts, faces = space.join(verts, faces, rep)
             if config.unseen_faces != "keep":
+                world = space.to_world(verts)
                 bridges = config.unseen_faces == "drop_but_bridges" and _fast_rays(rep)
-                drop = unseen_faces(verts, faces, cameras, depths, trunc_vox * rep.voxel,
-                                    enclosed_only=config.unseen_faces == "drop_enclosed",
-                                    bridge_reach=config.hidden_side_reach if bridges else None,
+                reach = math.inf if config.unseen_faces == "drop_but_joins" else \
+                    config.hidden_side_reach if bridges else None
+                drop = unseen_faces(world, faces, cameras, depths, space.tolerance(world, trunc_vox),
+                                    enclosed_only=config.unseen_faces == "drop_enclosed", bridge_reach=reach,
                                     min_piece=config.min_component_fraction)
                 faces = faces[~drop]
+                del world
                 if len(faces) == 0:
                     raise ValueError("no view sees any part of the fused surface: nothing is left to fine-tune")
             verts, faces, rep.pieces, rep.pieces_dropped = _drop_small_pieces(verts, faces,
@@ -549,31 +803,32 @@ def soup_to_surface(scene: TriangleScene, cameras: Sequence, render: Callable[[i
             if attempt + 1 == len(truncations):
                 rep.mesh_s += time.perf_counter() - t0
                 break
-            rep.carved_fraction = carved_fraction(verts, faces, cameras, depths, box, trunc_vox * rep.voxel,
-                                                  config.carved_check_views)
+            rep.carved_fraction = carved_fraction(space.to_world(verts), faces, cameras, depths,
+                                                  tolerance=lambda p, t=trunc_vox: space.tolerance(p, t),
+                                                  views=config.carved_check_views, **space.region)
             rep.mesh_s += time.perf_counter() - t0
             if rep.carved_fraction <= config.max_carved:
                 break
             rep.notes.append(f"truncation {trunc_vox:.1f} voxels carved away {100 * rep.carved_fraction:.1f}% of "
-                             f"what the views saw in the box (more than {100 * config.max_carved:.0f}%): fused again "
-                             f"with {truncations[attempt + 1]:.1f}")
+                             f"what the views saw {'in the box' if config.space == 'box' else ''}(more than "
+                             f"{100 * config.max_carved:.0f}%): fused again with {truncations[attempt + 1]:.1f}")
             if progress:
                 progress(rep.notes[-1])
         if config.unseen_faces != "keep":
             rep.notes.append(f"{int(drop.sum())} of {len(drop)} faces no view saw dropped ({config.unseen_faces})")
         t0 = time.perf_counter()
-        target = int(min(config.max_faces, max(config.face_ratio * scene.num_faces, 1_000)))
         if len(faces) > target:
-            import fast_simplification
-
-            verts, faces = fast_simplification.simplify(verts, faces.astype(np.int32), target_count=target)
-            verts, faces = _manifold(np.asarray(verts), np.asarray(faces))
+            # (in the fusion's coordinates: contracted ones spend the faces by angle seen from the centre)
+            verts, faces = space.decimate(verts, faces, target)
+            verts, faces = _manifold(verts, faces)
+            verts, faces = space.join(verts, faces, rep)  # (decimation can pull a join apart)
+        verts = space.to_world(np.asarray(verts, dtype=np.float64))
         sh, opac = transfer_attributes(scene, verts, config.neighbours)
         if images is not None:
             from trisplat.scene.sh import rgb_to_sh_dc
 
             rgb, seen = image_colors(cameras, (images(n) for n in range(len(cameras))), depths, verts,
-                                     trunc_vox * rep.voxel)
+                                     space.tolerance(verts, trunc_vox))
             seen_t = torch.as_tensor(seen > 0)
             sh[seen_t, 0] = rgb_to_sh_dc(torch.as_tensor(rgb[seen > 0], dtype=sh.dtype))
             rep.notes.append(f"{int((seen > 0).sum())} of {len(verts)} vertices coloured from the photos")
@@ -585,6 +840,13 @@ def soup_to_surface(scene: TriangleScene, cameras: Sequence, render: Callable[[i
         rep.faces, rep.vertices = out.num_faces, out.num_vertices
         rep.mesh_s += time.perf_counter() - t0
         return out, rep
+
+
+def fusion_radius(positions: np.ndarray, percentile: float = 99.5, margin: float = 1.1) -> float:
+    """World radius (normalised frame) out to which the contracted fusion reaches: `margin` times the `percentile`
+    of the soup's vertex distances from the origin, at least 2 (what lies farther is the background sphere's)."""
+    r = float(np.percentile(np.linalg.norm(np.asarray(positions, np.float64), axis=1), percentile))
+    return max(2.0, margin * r)
 
 
 def inner_box(radius: float = INNER_RADIUS) -> np.ndarray:

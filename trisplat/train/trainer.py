@@ -50,6 +50,11 @@ UNBOUNDED_MAX_DEPTH = 0.025
 # capture: on fox a larger truncation rounds detail off (22.9 dB straight after the switch at 3 voxels, 22.6 at 8,
 # 21.9 at 20), so it is tried only where the first surface lost what the views saw (docs/benchmarks.md, issue 24).
 UNBOUNDED_RETRY_TRUNCATIONS = (0.02, 0.04)
+# ... and with the whole scene fused (far_field 'fused'), where a floor is found under the cameras, what no view saw
+# between it and something solid up to this far above it (normalised units: the cameras lie within the unit sphere)
+# is solid: bonsai's stool, whose foot no photo shows, stands on the floor instead of hanging in a hole of it
+# (trisplat.mesh.ground)
+GROUND_REACH = 0.5
 
 
 OBJECT_TRUNCATION_VOXELS = 6.0  # the fusion switch's truncation for captures with alpha (TrainConfig.surface_truncation)
@@ -532,16 +537,27 @@ class Trainer:
         say = (lambda m: print(f"switch: {m}", file=sys.stderr, flush=True)) if self.show_progress else None
         if say:
             say(f"step {self.step}: fusing the soup's depth in {len(train)} training views into one surface")
-        # an object capture (alpha masks) has its content box; a real capture has none: its walls, floor and
-        # distant content reach far beyond the cameras. There the surface is fused in the inner box (the unit cube
-        # of the normalised frame, where the cameras are) and the soup beyond it is kept as a far-field layer
+        # an object capture (alpha masks) has its content box. A real capture has none: its walls, floor and
+        # distant content reach far beyond the cameras. By default (far_field 'fused') the whole scene is fused on a
+        # sparse grid over the contracted scene; with far_field 'soup' the surface is fused in the inner box (the
+        # unit cube of the normalised frame, where the cameras are) and the soup beyond it is kept as a far-field
+        # layer behind it
         soup = self.ts.to_scene()
+        contracted = not masked and cfg.far_field == "fused"
         box = self.data.bounds if masked else inner_box()
+        if contracted:
+            from trisplat.scene.background import background_radius
+
+            # everything inside the background sphere (its radius is beyond 99.9% of the soup's faces) is fused
+            # (unseen faces: the back of every wall goes, the hidden parts that join what was seen stay, so the room
+            # and what stands in it stay one piece)
+            scfg = dataclasses.replace(scfg, space="contracted", outer_radius=background_radius(soup) / 1.05,
+                                       unseen_faces="drop_but_joins", ground_reach=GROUND_REACH)
         surface, report = soup_to_surface(
             soup, [self.data.cameras[i] for i in train], lambda n: self.render(train[n], p), box, scfg, say,
             images=lambda n: self.data.load_image(train[n]))
         self.far_faces = 0
-        if not masked:
+        if not masked and not contracted:
             # pieces of the fused surface that reach the inner box's faces apart from the main one are walls and
             # furniture cut off by the box (bonsai: 5 pieces at x = +-1 and y = 1, 17-32% of the fused faces): far-field content,
             # kept behind the connected surface with the rest of the far field
@@ -551,7 +567,7 @@ class Trainer:
                 report.vertices = int(surface.faces[:report.faces].max()) + 1  # the cut pieces' vertices come after
                 report.notes.append(f"{self.far_faces} faces of the surface in pieces cut off by the inner box's "
                                     "faces moved to the far field")
-        far = far_field_mask(soup, box) if not masked else np.zeros(soup.num_faces, bool)
+        far = far_field_mask(soup, box) if not masked and not contracted else np.zeros(soup.num_faces, bool)
         if far.any():
             surface = append_scene(surface, sub_scene(soup, far))
             report.notes.append(f"{int(far.sum())} soup faces outside the inner box kept as the far field")
@@ -848,14 +864,16 @@ class Trainer:
 
     @torch.no_grad()
     def test_pixels(self) -> tuple[float | None, dict | None]:
-        """test_coverage, and for a run with a far-field layer the test PSNR by layer (trisplat.eval.layers: the
-        connected surface, the far field, the background sphere; the opaque mesh at one sample per pixel centre,
-        pooled over the test views), from one render of each test view."""
-        from trisplat.eval.layers import LayerScores, layer_labels
+        """test_coverage, and for a real capture's connected surface the test PSNR by layer (trisplat.eval.layers:
+        the piece of the surface that shows the most test pixels, its other pieces, the far-field soup, the
+        background sphere; the opaque mesh at one sample per pixel centre, pooled over the test views), from one
+        render of each test view."""
+        from trisplat.eval.layers import LayerScores, face_layers, layer_labels, main_piece, surface_pieces
         from trisplat.render import rasterize_hard
 
         scene, covered, total = self.ts.to_scene(), 0.0, 0.0
-        layers = LayerScores() if self.far_faces else None
+        layered = self.connected and (self.far_faces > 0 or not self.has_alpha)
+        shown = []  # (test view, face ids, render) for the layers
         for i in self.data.test_indices:
             cam = self.data.cameras[int(i)]
             out = rasterize_hard(scene.positions, scene.faces, scene.sh, torch.as_tensor(cam.world_to_camera,
@@ -866,10 +884,18 @@ class Trainer:
             content = np.ones_like(hit) if alpha is None else np.asarray(alpha) > 0.5
             covered += float((hit & content).sum())
             total += float(content.sum())
-            if layers is not None:
-                labels = layer_labels(out.face_id.cpu().numpy(), scene.num_faces, self.far_faces, self.background_faces)
-                layers.add(labels, out.rgb.clamp(0, 1).cpu().numpy(), np.asarray(self.data.load_image(int(i))))
-        return (covered / total if total else None), (None if layers is None else layers.to_dict())
+            if layered:
+                shown.append((int(i), out.face_id.cpu().numpy().astype(np.int32), out.rgb.clamp(0, 1).cpu().numpy()))
+        by_layer = None
+        if layered and shown:
+            piece = surface_pieces(scene.positions.numpy(), scene.faces.numpy(), scene.num_faces - self.far_faces)
+            of_face = face_layers(scene.num_faces, self.far_faces, self.background_faces, piece,
+                                  main_piece([fid for _, fid, _ in shown], piece) if len(piece) else 0)
+            layers = LayerScores()
+            for i, fid, rgb in shown:
+                layers.add(layer_labels(fid, of_face), rgb, np.asarray(self.data.load_image(i)))
+            by_layer = layers.to_dict()
+        return (covered / total if total else None), by_layer
 
     def _misfit_warnings(self) -> list[str]:
         """Training photos whose learned colour correction no camera makes (trisplat.train.exposure.Exposure.misfits):
@@ -892,6 +918,7 @@ class Trainer:
         coverage, by_layer = self.test_pixels()
         extra = {"coverage": coverage, "switch_s": self.switch_s, "far_field_faces": self.far_faces,
                  "psnr_by_layer": by_layer,
+                 "surface_pixels": None if by_layer is None else by_layer.get("surface", {}).get("pixels", 0.0),
                  "background_faces": self.background_faces,
                  "exposure": None if self.exposure is None else self.exposure.summary(),
                  "intrinsics": None if self.intrinsics is None else self.intrinsics.summary(),
