@@ -270,11 +270,11 @@ def rasterize_hard(positions, faces, colors, world_to_camera, K, width, height, 
     with screen-space barycentrics (perspective-correct on request). Returns RenderOutput: rgb, alpha (0/1; the
     covered share of the samples when supersampled), depth (view depth, 0 where empty), normal (camera-facing unit
     face normal, camera frame), face_id (-1 where empty), max_weight (1 for faces that win at least one sample),
-    pairs_evaluated (sample/face depth tests). backend: 'numba' (CPU) or 'warp' (NVIDIA Warp kernels on the tensors'
-    device, see render.warp_backend; needs the gpu extra); None: warp for CUDA tensors when Warp is installed, else
-    numba. linear_light: colours and background decoded from sRGB to linear light, interpolated and averaged over the
-    supersamples there, each pixel encoded back to sRGB (RenderOptions.linear_light; how a glTF viewer shows the
-    same vertex colours).
+    pairs_evaluated (sample/face depth tests). backend: 'numba' (CPU) or 'cuda' (the numba-cuda kernels on the
+    tensors' GPU, see render.cuda_backend; needs the gpu extra); None: cuda for CUDA tensors when numba-cuda can run
+    there, else numba (which renders on the CPU and returns CPU tensors). linear_light: colours and background decoded
+    from sRGB to linear light, interpolated and averaged over the supersamples there, each pixel encoded back to sRGB
+    (RenderOptions.linear_light; how a glTF viewer shows the same vertex colours).
     """
     vi = validate(positions, faces, colors, None, 1.0, world_to_camera, K, width, height, background)
     if not near > 0:
@@ -283,15 +283,15 @@ def rasterize_hard(positions, faces, colors, world_to_camera, K, width, height, 
     if linear_light:
         return _hard_linear_light(vi, near, perspective_correct, ss, backend)
     if backend is None:
-        from trisplat.render.warp_backend import available
+        from trisplat.render.device import cuda_unavailable
 
-        backend = "warp" if vi.positions.device.type == "cuda" and available() else "numba"
-    if backend == "warp":
-        from trisplat.render.warp_backend import rasterize_hard_warp
+        backend = "cuda" if vi.positions.device.type == "cuda" and cuda_unavailable() is None else "numba"
+    if backend == "cuda":
+        from trisplat.render.cuda_backend import rasterize_hard_cuda
 
-        return rasterize_hard_warp(vi, float(near), bool(perspective_correct), ss)
+        return rasterize_hard_cuda(vi, float(near), bool(perspective_correct), ss)
     if backend != "numba":
-        raise ValueError(f"backend must be 'numba' or 'warp', got {backend!r}")
+        raise ValueError(f"backend must be 'numba' or 'cuda', got {backend!r}")
     outs = []
     with torch.no_grad():
         pos = vi.positions.detach().to(torch.float32).cpu().numpy()

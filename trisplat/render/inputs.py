@@ -11,7 +11,7 @@ from trisplat.render.types import RenderOptions
 
 MAX_IMAGE_SIDE_PX = 16384  # larger images are refused as absurd (pixels per side)
 SUPERSAMPLE_FACTORS = (1, 2, 3, 4)
-BACKENDS = ("numba", "reference", "warp")
+BACKENDS = ("numba", "reference", "cuda")
 OPACITY_MODES = ("min", "mean")
 
 

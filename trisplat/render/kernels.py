@@ -25,7 +25,7 @@ from trisplat.render.kernel_math import N_THETA, T_COL, T_EDGE, T_INVR, T_NRM, T
 
 KERNEL_MATH_STAMP = "5a2f7fea939647bf"  # kernel_math.source_stamp() last checked against (kernel_math docstring)
 _CACHE = kernel_math.source_stamp() == KERNEL_MATH_STAMP
-km = kernel_math.compiled(njit(inline="always"), "trisplat.render.kernel_math.cpu")  # the shared maths, inlined into the kernels below
+km = kernel_math.compiled(njit(inline="always"), "trisplat.render.kernel_math.cpu")  # inlined into the kernels below
 SETUP_CHUNKS = 256  # parallel chunks of the per-face setup loops
 SPAN_EPS_PX = 1e-3  # per-row spans are widened by this much; the exact inside test runs on every pixel anyway
 
