@@ -48,6 +48,9 @@ class TrainBenchArgs:
     device: Literal["cpu", "cuda", "auto"] = "cpu"
     """Where the runs train (as `trisplat train --device`): cpu (the Numba kernels) or cuda (the numba-cuda kernels
     on the GPU; gpu extra). GPU results go to train_cuda.* and run folders named *_cuda."""
+    texture_size: int | None = None
+    """The runs' --texture-size (None: the preset's; 0: vertex colours in mesh.glb, which skips the texture fit and
+    changes only the file PSNR column)."""
 
 
 def _psnr_at_fractions(history: list[dict], fractions=(0.25, 0.5, 0.75)) -> list[str]:
@@ -171,7 +174,7 @@ def main(argv: list[str]) -> int:
             tag += "" if args.output == "surface" else f"_{args.output}"
             run_dir = args.runs / f"{name}_{preset}_{args.minutes:g}min{tag}"
             targs = make_train_args(data, run_dir, preset, force=True, minutes=args.minutes, output=args.output,
-                                    **opts)
+                                    texture_size=args.texture_size, **opts)
             targs.device = device.type
             result = run_training(targs)
             m = result.metrics

@@ -29,13 +29,16 @@ LONG_SUITES: dict[str, tuple[str, str]] = {
                 "peak memory; regulariser weights scored on held-out training views"),
     "switch-memory": ("trisplat.bench.switch_memory", "peak memory of the soup-to-surface switch on a synthetic "
                       "capture (default 300 photos of 4000x3000; long: tens of minutes)"),
+    "gpu": ("trisplat.bench.gpu", "the CUDA backend on an NVIDIA GPU: parity with the reference, 100k/1M-face render "
+            "timings, a lego training run (scripts/gpu_check.sh; needs a GPU, or --dry-run under numba's simulator)"),
 }
 DEFAULT_OUT = Path("bench_results")
 INDEX_MD = "index.md"
 
 
 def _usage() -> str:
-    lines = ["usage: trisplat bench {render,train,mesh,losses,poses,consumers,slam,blocks,texture,switch-memory,all} [options]   "
+    lines = ["usage: trisplat bench {render,train,mesh,losses,poses,consumers,slam,blocks,texture,switch-memory,gpu,all} "
+             "[options]   "
              "(trisplat bench SUITE --help for its options)",
              "", "Each suite writes <name>.json (with machine, versions, commit) and <name>.md into --out "
              f"(default {DEFAULT_OUT}/).", "", "suites:"]  # fmt: skip
