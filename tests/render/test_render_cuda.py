@@ -253,6 +253,34 @@ def test_cuda_hard_matches_brute_force_and_numba():
                                rtol=0)
 
 
+def test_cuda_hard_early_stop_is_exact_and_skips_the_layers_behind():
+    """A tile's faces come nearest vertex first and a pixel stops at the first face whose nearest vertex lies behind
+    what it shows. A steep face whose nearest vertex comes first but which is farther at the image centre than a
+    flat face behind that vertex must not hide it; and on a deep scene (a dozen layers) the stop skips most pairs."""
+    Kn = random_scene(0, 1, W, H)[5].numpy()
+    steep = unproject(np.array([[W / 2 - 40, H / 2 - 20], [W / 2 + 40, H / 2 - 20], [W / 2, H / 2 + 200]]),
+                      np.array([5.0, 5.0, 0.5]), Kn)  # nearest vertex (0.5) far below the image; 2.75 at its centre
+    flat = unproject(np.array([[W / 2 - 8, H / 2 - 6], [W / 2 + 8, H / 2 - 6], [W / 2, H / 2 + 6]]), np.full(3, 2.0), Kn)
+    pos = torch.tensor(np.concatenate([steep, flat]))
+    faces = torch.arange(6, dtype=torch.int32).reshape(2, 3)
+    col = torch.tensor([[1.0, 0, 0]] * 3 + [[0, 1.0, 0]] * 3, dtype=torch.float64)
+    w2c, K = (torch.as_tensor(a) for a in (np.eye(4), Kn))
+    out = rasterize_hard(*(t.to(DEVICE) for t in (pos, faces, col, w2c, K)), W, H, backend="cuda")
+    fid = brute_force(pos.numpy(), faces.numpy(), col.numpy(), w2c.numpy(), Kn, W, H)[0]
+    assert fid[H // 2, W // 2] == 1 and out.face_id[H // 2, W // 2].item() == 1
+    assert (out.face_id.cpu().numpy() == fid).mean() >= 0.98
+    pos, faces, col, _, w2c, K = random_scene(11, 160, W, H, kinds=False)
+    out = rasterize_hard(*(t.to(DEVICE) for t in (pos, faces, col, w2c, K)), W, H, backend="cuda")
+    cam = pos.numpy()  # identity pose: camera frame
+    uv = cam[faces.numpy()][..., :2] / cam[faces.numpy()][..., 2:] * Kn[[0, 1], [0, 1]] + Kn[:2, 2]
+    lo = np.clip(np.ceil(uv.min(1) - 0.5), 0, [W - 1, H - 1])
+    hi = np.clip(np.floor(uv.max(1) - 0.5), 0, [W - 1, H - 1])
+    in_boxes = int(np.prod(np.maximum(hi - lo + 1, 0), axis=1).sum())  # every (pixel, face) pair in the face's box
+    fid = brute_force(pos.numpy(), faces.numpy(), col.numpy(), w2c.numpy(), Kn, W, H)[0]
+    assert (out.face_id.cpu().numpy() == fid).mean() >= 0.98
+    assert in_boxes > 8 * W * H and out.pairs_evaluated < 0.5 * in_boxes, (out.pairs_evaluated, in_boxes)
+
+
 def test_kernel_math_stamp_is_current_in_every_launch_layer():
     """Numba caches a kernel by its own file only: the launch layers use their cache only while their
     KERNEL_MATH_STAMP is kernel_math.py's current stamp (kernel_math's docstring). An edit of kernel_math.py must
