@@ -340,23 +340,12 @@ def raster_backward(theta, rect, pair_face, tile_start, tile_pairs, width, heigh
                     if a < alpha_min:
                         continue
                     b0, b1, b2, dep, w0, w1, w2 = km.barycentric(L0, L1, L2, s0, s1, s2, z0, z1, z2, perspective)
+                    gD = gup[q, 4]
                     (pre, g_a, w, gw0, gw1, gw2, dr0, dg0, db0, dr1, dg1, db1, dr2, dg2, db2, dm0, dm1,
                      dm2) = km.composite_backward(Tq, a, dep, w0, w1, w2, cr0, cg0, cb0, cr1, cg1, cb1, cr2, cg2, cb2,
                                                   nn0, nn1, nn2, total[q], prefix[q], gup[q, 0], gup[q, 1], gup[q, 2],
-                                                  gup[q, 3], gup[q, 4], gup[q, 5], gup[q, 6], gup[q, 7])
+                                                  gup[q, 3], gD, gup[q, 5], gup[q, 6], gup[q, 7])
                     prefix[q] = pre
-                    gL0, gL1, gL2, ds0, ds1, ds2, dz0, dz1, dz2 = km.barycentric_backward(
-                        gw0, gw1, gw2, w * gup[q, 4], dep, b0, b1, b2, z0, z1, z2, w0, w1, w2, L0, L1, L2, s0, s1, s2,
-                        perspective)
-                    dop, dinv, gp0, gp1, gp2 = km.window_backward(g_a, L0, L1, L2, phi, ratio, I, o, sig, inv_r,
-                                                                  clamped)
-                    gL0 += gp0
-                    gL1 += gp1
-                    gL2 += gp2
-                    ginv += dinv
-                    gs0 += ds0
-                    gs1 += ds1
-                    gs2 += ds2
                     gr0 += dr0
                     gg0 += dg0
                     gb0_ += db0
@@ -366,13 +355,25 @@ def raster_backward(theta, rect, pair_face, tile_start, tile_pairs, width, heigh
                     gr2 += dr2
                     gg2 += dg2
                     gb2_ += db2
-                    gz0 += dz0
-                    gz1 += dz1
-                    gz2 += dz2
                     gm0 += dm0
                     gm1 += dm1
                     gm2 += dm2
+                    gL0, gL1, gL2, ds0, ds1, ds2, dz0, dz1, dz2 = km.barycentric_backward(
+                        gw0, gw1, gw2, w * gD, dep, b0, b1, b2, z0, z1, z2, w0, w1, w2, L0, L1, L2, s0, s1, s2,
+                        perspective)
+                    gs0 += ds0
+                    gs1 += ds1
+                    gs2 += ds2
+                    gz0 += dz0
+                    gz1 += dz1
+                    gz2 += dz2
+                    dop, dinv, gp0, gp1, gp2 = km.window_backward(g_a, L0, L1, L2, phi, ratio, I, o, sig, inv_r,
+                                                                  clamped)
                     gop += dop
+                    ginv += dinv
+                    gL0 += gp0
+                    gL1 += gp1
+                    gL2 += gp2
                     rP0 += gL0 * px
                     rP1 += gL1 * px
                     rP2 += gL2 * px
