@@ -148,9 +148,25 @@ def emit_pairs(rows, rect, ntiles, offsets, depth_bits, tile, ntx, closed, keys,
 
 
 @cuda.jit(device=True)
-def _load_batch(rows, rect, tile_faces, b0, n, sh_rows, sh_rect, sh_f):
-    """Copy the n faces of tile_faces[b0:b0 + n] into shared memory: ids and boxes one per thread, then the rows of
-    `rows` as one flat, coalesced copy. Every thread of the block must call it (it synchronises)."""
+def _tile_pixel(ntx, tile, width, height):
+    """This thread's pixel (one block per tile, tile^2 threads): the tile, x, y, whether it lies in the image, and
+    the pixel centre x + 0.5, y + 0.5 in float32."""
+    t = cuda.blockIdx.x
+    tid = cuda.threadIdx.x
+    ix = (t % ntx) * tile + tid % tile
+    iy = (t // ntx) * tile + tid // tile
+    half = np.float32(0.5)
+    return t, ix, iy, ix < width and iy < height, np.float32(ix) + half, np.float32(iy) + half
+
+
+@cuda.jit(device=True)
+def _next_batch(done, rows, rect, tile_faces, b0, a1, sh_rows, sh_rect, sh_f):
+    """The tile's faces tile_faces[b0:a1], up to BATCH of them, copied into shared memory (ids and boxes one per
+    thread, then the rows of `rows` as one flat, coalesced copy); returns how many, or 0 when no thread of the block
+    needs more (none is still not `done`). Every thread of the block must call it (it synchronises)."""
+    if cuda.syncthreads_count(0 if done else 1) == 0:
+        return 0
+    n = min(BATCH, a1 - b0)
     tid = cuda.threadIdx.x
     nthr = cuda.blockDim.x
     ncol = sh_rows.shape[1]
@@ -165,6 +181,7 @@ def _load_batch(rows, rect, tile_faces, b0, n, sh_rows, sh_rect, sh_f):
         k = e - i * ncol
         sh_rows[i, k] = rows[sh_f[i], k]
     cuda.syncthreads()
+    return n
 
 
 @cuda.jit(fastmath=True, cache=_CACHE)
@@ -176,14 +193,7 @@ def raster_forward(theta, rect, tile_faces, tile_start, width, height, tile, ntx
     sh_th = cuda.shared.array((BATCH, N_THETA), np.float32)
     sh_rect = cuda.shared.array((BATCH, 4), np.int32)
     sh_f = cuda.shared.array(BATCH, np.int32)
-    t = cuda.blockIdx.x
-    tid = cuda.threadIdx.x
-    ix = (t % ntx) * tile + tid % tile
-    iy = (t // ntx) * tile + tid // tile
-    inside = ix < width and iy < height
-    half = np.float32(0.5)
-    px = np.float32(ix) + half
-    py = np.float32(iy) + half
+    t, ix, iy, inside, px, py = _tile_pixel(ntx, tile, width, height)
     sig = np.float32(sigma)
     a_min, a_max, tmin = np.float32(alpha_min), np.float32(alpha_max), np.float32(t_min)
     zero = np.float32(0.0)
@@ -194,10 +204,9 @@ def raster_forward(theta, rect, tile_faces, tile_start, width, height, tile, ntx
     done = not inside
     a0, a1 = tile_start[t], tile_start[t + 1]
     for b0 in range(a0, a1, BATCH):
-        if cuda.syncthreads_count(0 if done else 1) == 0:  # the whole tile is opaque (a barrier, too)
+        n = _next_batch(done, theta, rect, tile_faces, b0, a1, sh_th, sh_rect, sh_f)
+        if n == 0:  # no thread of the tile needs more faces
             break
-        n = min(BATCH, a1 - b0)
-        _load_batch(theta, rect, tile_faces, b0, n, sh_th, sh_rect, sh_f)
         for i in range(n):
             w = zero
             if not done and sh_rect[i, 0] <= ix <= sh_rect[i, 2] and sh_rect[i, 1] <= iy <= sh_rect[i, 3]:
@@ -254,14 +263,7 @@ def raster_backward(theta, rect, tile_faces, tile_start, width, height, tile, nt
     sh_th = cuda.shared.array((BATCH, N_THETA), np.float32)
     sh_rect = cuda.shared.array((BATCH, 4), np.int32)
     sh_f = cuda.shared.array(BATCH, np.int32)
-    t = cuda.blockIdx.x
-    tid = cuda.threadIdx.x
-    ix = (t % ntx) * tile + tid % tile
-    iy = (t // ntx) * tile + tid // tile
-    inside = ix < width and iy < height
-    half = np.float32(0.5)
-    px = np.float32(ix) + half
-    py = np.float32(iy) + half
+    t, ix, iy, inside, px, py = _tile_pixel(ntx, tile, width, height)
     sig = np.float32(sigma)
     a_min, a_max, tmin = np.float32(alpha_min), np.float32(alpha_max), np.float32(t_min)
     zero = np.float32(0.0)
@@ -278,10 +280,9 @@ def raster_backward(theta, rect, tile_faces, tile_start, width, height, tile, nt
     done = not inside
     a0, a1 = tile_start[t], tile_start[t + 1]
     for b0 in range(a0, a1, BATCH):
-        if cuda.syncthreads_count(0 if done else 1) == 0:
+        n = _next_batch(done, theta, rect, tile_faces, b0, a1, sh_th, sh_rect, sh_f)
+        if n == 0:  # no thread of the tile needs more faces
             break
-        n = min(BATCH, a1 - b0)
-        _load_batch(theta, rect, tile_faces, b0, n, sh_th, sh_rect, sh_f)
         for i in range(n):
             valid = False
             e0x = e0y = e0d = e1x = e1y = e1d = e2x = e2y = e2d = ginv = gs0 = gs1 = gs2 = zero
@@ -421,24 +422,16 @@ def hard_pixels(rows, rect, znear, tile_faces, tile_start, width, height, tile, 
     sh_rows = cuda.shared.array((BATCH, N_HARD), np.float32)
     sh_rect = cuda.shared.array((BATCH, 4), np.int32)
     sh_f = cuda.shared.array(BATCH, np.int32)
-    t = cuda.blockIdx.x
-    tid = cuda.threadIdx.x
-    ix = (t % ntx) * tile + tid % tile
-    iy = (t // ntx) * tile + tid // tile
-    inside = ix < width and iy < height
-    half = np.float32(0.5)
-    px = np.float32(ix) + half
-    py = np.float32(iy) + half
+    t, ix, iy, inside, px, py = _tile_pixel(ntx, tile, width, height)
     best = np.float32(0.0)
     bf = -1
     ne = 0
     done = not inside
     a0, a1 = tile_start[t], tile_start[t + 1]
     for b0 in range(a0, a1, BATCH):
-        if cuda.syncthreads_count(0 if done else 1) == 0:
+        n = _next_batch(done, rows, rect, tile_faces, b0, a1, sh_rows, sh_rect, sh_f)
+        if n == 0:  # no thread of the tile needs more faces
             break
-        n = min(BATCH, a1 - b0)
-        _load_batch(rows, rect, tile_faces, b0, n, sh_rows, sh_rect, sh_f)
         for i in range(n):
             if done:
                 break
