@@ -281,6 +281,18 @@ def test_cuda_hard_early_stop_is_exact_and_skips_the_layers_behind():
     assert in_boxes > 8 * W * H and out.pairs_evaluated < 0.5 * in_boxes, (out.pairs_evaluated, in_boxes)
 
 
+def test_input_checks_on_a_gpu_reduce_there_as_the_numpy_scan_does():
+    """rasterize() checks its inputs (NaN/Inf, index and opacity ranges); for GPU tensors the reductions run on the
+    GPU and only their three numbers come back (copying 1M faces' arrays to the host would cost more than the
+    render). The device path, run here on CPU tensors, gives what the numpy path gives."""
+    from trisplat.render.inputs import _scan_on_device, scan
+
+    for t in (torch.tensor([1.0, float("nan"), 3.0, -2.0]), torch.tensor([float("inf"), float("-inf")]),
+              torch.tensor([[4, 9], [-3, 2]], dtype=torch.int32), torch.zeros(0), torch.rand(1000, dtype=torch.float64)):
+        for bounds in (True, False):
+            assert _scan_on_device(t.reshape(-1), bounds) == scan(t, bounds), (t, bounds)
+
+
 def test_kernel_math_stamp_is_current_in_every_launch_layer():
     """Numba caches a kernel by its own file only: the launch layers use their cache only while their
     KERNEL_MATH_STAMP is kernel_math.py's current stamp (kernel_math's docstring). An edit of kernel_math.py must
