@@ -2,11 +2,31 @@
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 
 import pytest
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+
+def _choose_cuda_simulator() -> None:
+    """Without a GPU torch can see, the CUDA backend's tests (tests/render/test_render_cuda.py) run its kernels
+    through numba's CUDA simulator. numba reads NUMBA_ENABLE_CUDASIM when numba.cuda is first imported, so the choice
+    is made here, before any test imports it (an explicit NUMBA_ENABLE_CUDASIM is left as it is)."""
+    if "NUMBA_ENABLE_CUDASIM" in os.environ:
+        return
+    import torch
+
+    if not torch.cuda.is_available():
+        os.environ["NUMBA_ENABLE_CUDASIM"] = "1"
+        if "numba" in sys.modules:
+            from numba.core import config
+
+            config.reload_config()
+
+
+_choose_cuda_simulator()
 
 DATA_DIR = Path(os.environ.get("TRISPLAT_SHARED_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data"))
 

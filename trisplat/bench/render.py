@@ -33,11 +33,9 @@ class BenchRenderConfig:
     """Window sharpness used for the soft renders."""
     reference: bool = True
     """Also time the dense PyTorch reference where it fits (100k faces at 256x256 takes about a minute)."""
-    backend: Literal["numba", "warp"] = "numba"
-    """Renderer timed (soft and hard): numba (CPU kernels) or warp (NVIDIA Warp kernels on --device; gpu extra).
-    Results go to render.json/.md for numba, render_warp.json/.md for warp."""
-    device: Literal["auto", "cpu", "cuda"] = "auto"
-    """Where the scene tensors live for the warp backend (auto: cuda when torch sees a GPU). numba runs on the CPU."""
+    backend: Literal["numba", "cuda"] = "numba"
+    """Renderer timed (soft and hard): numba (CPU kernels) or cuda (numba-cuda kernels on the GPU; gpu extra and a
+    CUDA build of torch). Results go to render.json/.md for numba, render_cuda.json/.md for cuda."""
     case: str = ""
     """Internal: run a single case 'W,H,F,lo,hi,ref' and print JSON (used to isolate peak memory per case)."""
 
@@ -138,11 +136,9 @@ def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     if cfg.case:
         w, h, n, lo, hi, ref = cfg.case.split(",")
-        device = "cpu"
-        if cfg.backend == "warp":
-            from trisplat.render.warp_backend import resolve_device
+        from trisplat.render.device import resolve_device
 
-            device = resolve_device(cfg.device).type
+        device = resolve_device("cuda" if cfg.backend == "cuda" else "cpu").type
         row = _run_case(int(w), int(h), int(n), float(lo), float(hi), ref == "1", cfg.repeats, cfg.sigma, cfg.backend,
                         device)
         print("RESULT " + json.dumps(row))
@@ -156,26 +152,24 @@ def main(argv: list[str] | None = None) -> int:
             "ref peak RSS MB", "speed-up vs ref", "hard ms", "hard FPS", "peak RSS with hard MB"]
     table = BenchTable("render" if cfg.backend == "numba" else f"render_{cfg.backend}", cols)
     cases = CASES[:3] if cfg.quick else CASES
-    if cfg.backend == "warp":
-        from trisplat.render.warp_backend import available, device_name, resolve_device
+    if cfg.backend == "cuda":
+        from trisplat.render.device import device_name, resolve_device
 
-        if not available():
-            from trisplat.render.warp_backend import INSTALL_HINT
-
-            print(f"trisplat bench render: {INSTALL_HINT}", file=sys.stderr)
+        try:
+            dev = resolve_device("cuda")
+        except ValueError as exc:
+            print(f"trisplat bench render: {exc}", file=sys.stderr)
             return 1
-        dev = resolve_device(cfg.device)
-        table.notes.append(f"Backend warp (NVIDIA Warp kernels) on device {device_name(dev)}; the dense reference "
-                           "runs on the same device. Warp's CPU device runs kernels on one thread. 'pairs evaluated' "
-                           "counts, for warp, the (pixel, face) pairs of each tile's list whose pixel lies in the "
-                           "face's pixel box (a thread per pixel tests every face of its tile).")
+        table.notes.append(f"Backend cuda (numba-cuda kernels) on device {device_name(dev)}; the dense reference "
+                           "runs on the same device. 'pairs evaluated' counts, for cuda, the (pixel, face) pairs of "
+                           "each tile's list whose pixel lies in the face's pixel box while the pixel is not yet "
+                           "opaque (a thread per pixel tests every face of its tile).")
     else:
         dev = None
     for w, h, n, lo, hi in progress_bar(cases, desc="bench render"):
         ref = cfg.reference and n <= REFERENCE_MAX_FACES and w * h <= REFERENCE_MAX_PIXELS
         cmd = [sys.executable, "-m", "trisplat.bench.render", "--case", f"{w},{h},{n},{lo},{hi},{int(ref)}",
-               "--repeats", str(cfg.repeats), "--sigma", str(cfg.sigma), "--backend", cfg.backend,
-               "--device", str(dev.type if dev is not None else "cpu")]
+               "--repeats", str(cfg.repeats), "--sigma", str(cfg.sigma), "--backend", cfg.backend]
         proc = subprocess.run(cmd, capture_output=True, text=True)
         lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")]
         if proc.returncode != 0 or not lines:

@@ -45,12 +45,12 @@ class TrainBenchArgs:
     """Image size of the generated Spot views."""
     output: str = "surface"
     """What the runs end with: 'surface' (one connected mesh, the default) or 'soup' (independent triangles)."""
-    backend: Literal["numba", "warp"] = "numba"
-    """Soft renderer the runs train with (the config's backend): numba, or warp (NVIDIA Warp kernels, gpu extra; on
-    the trainer's device: see --device). Warp results go to train_warp.*"""
     device: Literal["cpu", "cuda", "auto"] = "cpu"
-    """Where the runs train (as `trisplat train --device`; cuda implies the warp backend). On the CPU the warp
-    backend runs on Warp's CPU device, single-threaded."""
+    """Where the runs train (as `trisplat train --device`): cpu (the Numba kernels) or cuda (the numba-cuda kernels
+    on the GPU; gpu extra). GPU results go to train_cuda.* and run folders named *_cuda."""
+    texture_size: int | None = None
+    """The runs' --texture-size (None: the preset's; 0: vertex colours in mesh.glb, which skips the texture fit and
+    changes only the file PSNR column)."""
 
 
 def _psnr_at_fractions(history: list[dict], fractions=(0.25, 0.5, 0.75)) -> list[str]:
@@ -160,19 +160,22 @@ def main(argv: list[str]) -> int:
     ]
     if geo:
         cols += ["Chamfer", "Chamfer/diag", "F@1%", "normal consist."]
-    table = BenchTable("train" if args.backend == "numba" else f"train_{args.backend}", cols)
+    from trisplat.render.device import device_name, resolve_device
+
+    device = resolve_device(args.device)  # before any run starts
+    table = BenchTable("train" if device.type == "cpu" else f"train_{device.type}", cols)
     for name in args.scenes:
         if name not in SCENES:
             raise ValueError(f"unknown bench scene {name!r}; choose from {sorted(SCENES)}")
         folder, opts = SCENES[name]
         data = bench_data(name, folder, args)
         for preset in args.presets:
-            tag = "" if args.backend == "numba" else f"_{args.backend}"
+            tag = "" if device.type == "cpu" else f"_{device.type}"
             tag += "" if args.output == "surface" else f"_{args.output}"
             run_dir = args.runs / f"{name}_{preset}_{args.minutes:g}min{tag}"
-            targs = make_train_args(data, run_dir, preset, force=True, minutes=args.minutes, backend=args.backend,
-                                    output=args.output, **opts)
-            targs.device = args.device
+            targs = make_train_args(data, run_dir, preset, force=True, minutes=args.minutes, output=args.output,
+                                    texture_size=args.texture_size, **opts)
+            targs.device = device.type
             result = run_training(targs)
             m = result.metrics
             hist = open_run(run_dir).history()
@@ -210,7 +213,8 @@ def main(argv: list[str]) -> int:
         "decoded and encoded as specified; `trisplat eval RUN --file mesh.glb`), same views and samples. "
         "Chamfer = mean of accuracy and completeness (DTU style) against the true surface, 200k area-uniform samples, seed 0."
     )
-    table.notes.append(f"Soft renderer (training): backend {args.backend}, device {args.device}.")
+    table.notes.append(f"Training device: {device_name(device)} (renderer: "
+                       f"{'the numba-cuda kernels' if device.type == 'cuda' else 'the Numba CPU kernels'}).")
     md = table.write(args.out, "trisplat bench train " + " ".join(argv))
     print(md.read_text())
     return 0

@@ -31,14 +31,16 @@ LONG_SUITES: dict[str, tuple[str, str]] = {
              "the surface, where the others fell through (RUN as its argument)"),
     "switch-memory": ("trisplat.bench.switch_memory", "peak memory of the soup-to-surface switch on a synthetic "
                       "capture (default 300 photos of 4000x3000; long: tens of minutes)"),
+    "gpu": ("trisplat.bench.gpu", "the CUDA backend on an NVIDIA GPU: parity with the reference, 100k/1M-face render "
+            "timings, a lego training run (scripts/gpu_check.sh; needs a GPU, or --dry-run under numba's simulator)"),
 }
 DEFAULT_OUT = Path("bench_results")
 INDEX_MD = "index.md"
 
 
 def _usage() -> str:
-    lines = ["usage: trisplat bench {render,train,mesh,losses,poses,consumers,slam,blocks,texture,walk,switch-memory,all} "
-             "[options]   (trisplat bench SUITE --help for its options)",
+    lines = ["usage: trisplat bench {render,train,mesh,losses,poses,consumers,slam,blocks,texture,walk,switch-memory,gpu,"
+             "all} [options]   (trisplat bench SUITE --help for its options)",
              "", "Each suite writes <name>.json (with machine, versions, commit) and <name>.md into --out "
              f"(default {DEFAULT_OUT}/).", "", "suites:"]  # fmt: skip
     lines += [f"  {name:<9} {desc}" for name, (_, desc) in {**SUITES, **LONG_SUITES}.items()]

@@ -47,8 +47,9 @@ class EvalConfig:
     up: Literal["auto", "y", "z", "capture"] = "auto"
     """with --file: the up axis the file was exported with (as `trisplat export --up`)"""
     device: Literal["cpu", "cuda", "auto"] = "cpu"
-    """cpu: the run's renderer on the CPU; cuda: the Warp kernels on the GPU (gpu extra and a CUDA build of torch);
-    auto: cuda when both are there"""
+    """cpu: the run's renderer on the CPU; cuda: the numba-cuda kernels on an NVIDIA GPU (gpu extra and a CUDA build
+    of torch; without them: an error naming what is missing, before anything is written); auto: cuda when it can run
+    here, else cpu"""
 
 
 def main(argv: list[str]) -> int:
@@ -56,7 +57,7 @@ def main(argv: list[str]) -> int:
     from trisplat.eval.report import METRICS_JSON, REPORT_HTML, json_safe
     from trisplat.eval.views import evaluate_run
     from trisplat.io.atomic import refuse_to_overwrite
-    from trisplat.render.warp_backend import resolve_device
+    from trisplat.render.device import resolve_device
     from trisplat.run import open_run
 
     open_run(cfg.run)  # the input first: a folder that is no run is named as such

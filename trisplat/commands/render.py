@@ -30,25 +30,21 @@ class RenderArgs:
     force: bool = False
     """replace PNGs that exist in the output folder"""
     device: Literal["auto", "cpu", "cuda"] = "auto"
-    """cpu: the Numba kernels; cuda: the Warp kernels on the GPU (gpu extra and a CUDA build of torch); auto: cuda
-    when both are there"""
+    """cpu: the Numba kernels; cuda: the numba-cuda kernels on an NVIDIA GPU (gpu extra and a CUDA build of torch;
+    without them: an error naming what is missing); auto: cuda when it can run here, else cpu"""
 
 
 def render_split(args: RenderArgs) -> list[Path]:
-    from trisplat.eval.views import eval_supersample, render_view, soft_sigma
+    from trisplat.eval.views import eval_supersample, render_view, scene_on, soft_sigma
     from trisplat.run import open_run
     from trisplat.eval.report import write_png
     from trisplat.train.outputs import output_stems
 
-    import dataclasses
-
-    from trisplat.render.warp_backend import backend_for, resolve_device
+    from trisplat.render.device import resolve_device
 
     run = open_run(args.run)
     dev = resolve_device(args.device)  # cheap checks before the model and the capture are loaded
-    scene, _ = run.load_model()
-    scene = dataclasses.replace(scene, positions=scene.positions.to(dev), sh=scene.sh.to(dev),
-                                opacity_logit=scene.opacity_logit.to(dev), faces=scene.faces.to(dev))
+    scene = scene_on(run.load_model()[0], dev)
     data = run.load_scene_data()
     sigma = soft_sigma(run) if args.mode == "soft" else None
     ss = eval_supersample(run) if args.supersample is None else args.supersample
@@ -62,8 +58,7 @@ def render_split(args: RenderArgs) -> list[Path]:
     written = []
     for i, path in progress_bar(list(targets.items()), desc=f"render {args.split}"):
         cam = data.cameras[i]
-        write_png(render_view(scene, cam, args.mode, data.background, sigma, {"backend": backend_for(dev)},
-                              supersample=ss), path)
+        write_png(render_view(scene, cam, args.mode, data.background, sigma, supersample=ss), path)
         written.append(path)
     return written
 

@@ -44,8 +44,10 @@ class TrainArgs:
     quiet: bool = False
     """No progress bar or messages (errors are still printed)."""
     device: Literal["cpu", "cuda", "auto"] = "cpu"
-    """cpu: the Numba kernels; cuda: the tensors on the GPU and the Warp renderer (gpu extra and a CUDA build of
-    torch; not yet run end to end on a GPU, see docs/benchmarks_gpu.md); auto: cuda when both are there."""
+    """cpu: the Numba kernels; cuda: the scene's tensors on the GPU and the numba-cuda renderer (gpu extra and a CUDA
+    build of torch). With no usable GPU, --device cuda stops at once with the reason (no torch CUDA device, no
+    numba-cuda), before the run folder is touched; nothing falls back to the CPU. auto: cuda when it can run here,
+    else cpu. Not yet run end to end on a GPU: docs/benchmarks_gpu.md."""
     blocks: str = "1"
     """Partitioned training (issue 28): 'auto' or N cuts the scene's ground plane into blocks with overlapping
     margins, trains each block as a Ray task (needs the cluster extra: pip install -e ".[cluster]") and merges them
@@ -160,7 +162,7 @@ def run_training(args: TrainArgs, explicit: set[str] | None = None):
     default those of args.config that differ from its preset)."""
     from trisplat.data import load_dataset
     from trisplat.io.atomic import atomic_write_text
-    from trisplat.render.warp_backend import resolve_device
+    from trisplat.render.device import resolve_device
     from trisplat.train.trainer import Trainer
 
     out = args.out
@@ -202,7 +204,7 @@ def run_training(args: TrainArgs, explicit: set[str] | None = None):
     elif args.force and not args.resume:
         move_aside(out)
     if device.type == "cuda" and cfg.backend == "numba":  # the Numba kernels run on the CPU only
-        cfg = dataclasses.replace(cfg, backend="warp")
+        cfg = dataclasses.replace(cfg, backend="cuda")
     trainer = Trainer(cfg, data, out, resume=resume, show_progress=not args.quiet,
                       data_options=data_options, data_path=data_path, device=device)
     updated = {**run.config, **json.loads(json.dumps(cfg.to_dict()))} if resume else None
@@ -216,7 +218,7 @@ def check_cheap_options(args: TrainArgs) -> None:
     the capture): --device, --out's overwrite and resume rules, the step count and time budget, and the options the
     capture is loaded with. run_training checks them again (it has other callers)."""
     from trisplat.data.options import LoadOptions
-    from trisplat.render.warp_backend import resolve_device
+    from trisplat.render.device import resolve_device
 
     cfg = args.config
     resolve_device(args.device)

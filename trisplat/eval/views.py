@@ -1,7 +1,6 @@
 """Novel-view evaluation of a trained run: render a split, score every view, write metrics.json and report.html."""
 from __future__ import annotations
 
-import dataclasses
 import time
 from pathlib import Path
 
@@ -40,10 +39,7 @@ def eval_supersample(run) -> int:
 
 def scene_on(scene, device: torch.device | None):
     """The TriangleScene with its tensors on `device` (the scene itself when they are there already, or for None)."""
-    if device is None or scene.positions.device == torch.device(device):
-        return scene
-    return dataclasses.replace(scene, positions=scene.positions.to(device), sh=scene.sh.to(device),
-                               opacity_logit=scene.opacity_logit.to(device), faces=scene.faces.to(device))
+    return scene if device is None else scene.to(device)
 
 
 def render_view(scene, camera, mode: str, background, sigma: float | None = None, options: dict | None = None,
@@ -55,17 +51,17 @@ def render_view(scene, camera, mode: str, background, sigma: float | None = None
     says so (TriangleScene.linear_light). options: RenderOptions fields the run
     trained with (near, tile_size, backend); the hard renderer takes only `near` from them. supersample: each
     pixel is the mean of s x s samples (anti-aliasing; 1 = one sample at the pixel centre). device: render with the
-    scene's tensors there (None: where they are); on a CUDA device both renderers use the Warp kernels (a run's
-    'numba' backend runs on the CPU only).
+    scene's tensors there (None: where they are). The run's kernels follow the tensors: the numba-cuda kernels on a
+    GPU, the Numba kernels on the CPU, whichever the run trained with ('reference' stays).
     """
     from trisplat import render
+    from trisplat.render.device import backend_for
 
     options = dict(options or {})
     if device is not None:
-        device = torch.device(device)
-        scene = scene_on(scene, device)
-        if device.type == "cuda" and options.get("backend", "numba") == "numba":
-            options["backend"] = "warp"
+        scene = scene_on(scene, torch.device(device))
+    if options.get("backend", "numba") != "reference":
+        options["backend"] = backend_for(scene.positions.device)
     w2c = torch.as_tensor(camera.world_to_camera, dtype=torch.float32)
     K = torch.as_tensor(camera.K, dtype=torch.float32)
     bg = torch.as_tensor(np.asarray(background, dtype=np.float32))
@@ -145,12 +141,12 @@ def evaluate_run(
     LPIPS is None (with a note in the metrics) when the weights file is missing. max_views: evaluate only the first
     N views of the split (quick looks; the metrics say so). supersample: samples per pixel side (default: the
     run's eval_supersample, eval_supersample(run)); the metrics record it. device: 'cpu', 'cuda', 'auto' (as
-    `trisplat eval --device`, resolved by render.warp_backend.resolve_device) or a torch device: where the views
-    are rendered (on a GPU with the Warp kernels); the metrics record a device other than the CPU.
+    `trisplat eval --device`, resolved by render.device.resolve_device) or a torch device: where the views
+    are rendered (on a GPU with the numba-cuda kernels); the metrics record a device other than the CPU.
     """
     from trisplat.eval.lpips import MIN_SIZE_PX as LPIPS_MIN_SIZE_PX
     from trisplat.eval.lpips import load_lpips, lpips
-    from trisplat.render.warp_backend import resolve_device
+    from trisplat.render.device import resolve_device
     from trisplat.run import open_run
 
     if mode not in MODES:

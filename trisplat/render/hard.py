@@ -11,6 +11,7 @@ import torch
 from numba import njit, prange
 
 from trisplat.io.colour import linear_to_srgb_torch, srgb_to_linear_torch
+from trisplat.render import kernel_math
 from trisplat.render.inputs import check_supersample, validate
 from trisplat.render.rasterize import camera_center
 from trisplat.render.types import RenderOutput, downsample, stack_views
@@ -21,6 +22,9 @@ DEPTH_SLABS = 64  # front-to-back passes by nearest-vertex depth (more: better c
 ORDER_CHUNKS = 64  # parallel chunks of the depth-order counting sort
 HIZ_BLOCK = 8  # pixels per side of the occlusion-culling blocks (each keeps the farthest depth it shows)
 BANDS_PER_THREAD = 1  # horizontal image bands per Numba thread (no atomics: a band owns its pixels)
+KERNEL_MATH_STAMP = "5a2f7fea939647bf"  # kernel_math.source_stamp() last checked against (kernel_math docstring)
+_CACHE = kernel_math.source_stamp() == KERNEL_MATH_STAMP
+km = kernel_math.compiled(njit(inline="always"), "trisplat.render.kernel_math.cpu_hard")  # the shared z-buffer maths
 
 
 _workspace = threading.local()
@@ -38,48 +42,21 @@ def _scratch(name: str, shape: tuple, dtype) -> np.ndarray:
     return buf[:n].reshape(shape)
 
 
-@njit(parallel=True, cache=True, fastmath=True)
+@njit(parallel=True, cache=_CACHE, fastmath=True)
 def hard_setup(pos, faces, w2c, K, near, width, height, uvz, box, znear):
-    """Per face: screen vertices and 1/z (uvz [F,9]: u, v, 1/z per vertex), pixel-centre box [F,4] (first row,
-    last row, first column, last column; (1, 0, ...) when culled: behind the near plane, degenerate or
-    off-screen) and the largest 1/z (its nearest vertex)."""
-    F = faces.shape[0]
-    for f in prange(F):
-        box[f, 0], box[f, 1] = 1, 0
-        znear[f] = 0.0
-        ok = True
-        for k in range(3):
-            v = faces[f, k]
-            X = w2c[0, 0] * pos[v, 0] + w2c[0, 1] * pos[v, 1] + w2c[0, 2] * pos[v, 2] + w2c[0, 3]
-            Y = w2c[1, 0] * pos[v, 0] + w2c[1, 1] * pos[v, 1] + w2c[1, 2] * pos[v, 2] + w2c[1, 3]
-            Z = w2c[2, 0] * pos[v, 0] + w2c[2, 1] * pos[v, 1] + w2c[2, 2] * pos[v, 2] + w2c[2, 3]
-            if Z < near:
-                ok = False
-            zi = 1.0 / Z
-            uvz[f, 3 * k] = (K[0, 0] * X + K[0, 1] * Y) * zi + K[0, 2]
-            uvz[f, 3 * k + 1] = (K[1, 0] * X + K[1, 1] * Y) * zi + K[1, 2]
-            uvz[f, 3 * k + 2] = zi
-        if not ok:
-            continue
-        u0, v0, u1, v1, u2, v2 = uvz[f, 0], uvz[f, 1], uvz[f, 3], uvz[f, 4], uvz[f, 6], uvz[f, 7]
-        if (u1 - u0) * (v2 - v0) - (v1 - v0) * (u2 - u0) == 0.0:
-            continue
-        ix0 = max(0, int(math.ceil(min(u0, min(u1, u2)) - 0.5)))
-        ix1 = min(width - 1, int(math.floor(max(u0, max(u1, u2)) - 0.5)))
-        iy0 = max(0, int(math.ceil(min(v0, min(v1, v2)) - 0.5)))
-        iy1 = min(height - 1, int(math.floor(max(v0, max(v1, v2)) - 0.5)))
-        if ix0 > ix1 or iy0 > iy1:
-            continue
-        box[f, 0], box[f, 1], box[f, 2], box[f, 3] = iy0, iy1, ix0, ix1
-        znear[f] = max(uvz[f, 2], max(uvz[f, 5], uvz[f, 8]))
+    """Per face (kernel_math.hard_setup_face): screen vertices and 1/z (uvz [F,9]: u, v, 1/z per vertex), pixel-centre
+    box [F,4] (first row, last row, first column, last column; (1, 0, ...) when culled: behind the near plane,
+    degenerate or off-screen) and the largest 1/z (its nearest vertex)."""
+    for f in prange(faces.shape[0]):
+        km.hard_setup_face(f, pos, faces, w2c, K, near, width, height, uvz, box, znear)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=_CACHE, inline="always")
 def _slab(zn, lo, scale, nslabs):
     return min(nslabs - 1, int((1.0 / zn - lo) * scale))
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=_CACHE)
 def depth_order(box, znear, uvz, nslabs, order, uvz_o, box_o, znear_o):
     """Visible faces grouped by depth slab of their nearest vertex, nearest slab first, input order inside a slab
     (a stable counting sort, parallel over chunks of faces: per-chunk histograms, then each chunk scatters its
@@ -127,7 +104,7 @@ def depth_order(box, znear, uvz, nslabs, order, uvz_o, box_o, znear_o):
     return run
 
 
-@njit(cache=True, inline="always")
+@njit(cache=_CACHE, inline="always")
 def _clip(rnx, c, xlo, xhi):
     """Clip the row's x range to the closed half-plane nx * x + c <= 0 (rnx = 1/nx, 0 for a horizontal edge)."""
     if rnx > 0:
@@ -139,7 +116,7 @@ def _clip(rnx, c, xlo, xhi):
     return xlo, xhi
 
 
-@njit(cache=True, fastmath=True, inline="always")
+@njit(cache=_CACHE, fastmath=True, inline="always")
 def _block_min(zbuf, width, y0, y1, x0, x1):
     """Smallest 1/z over zbuf[y0:y1, x0:x1] (row-major, `width` wide); the common full 8-wide case unrolled."""
     m = np.float32(np.inf)
@@ -155,7 +132,7 @@ def _block_min(zbuf, width, y0, y1, x0, x1):
     return m
 
 
-@njit(parallel=True, cache=True, fastmath=True)
+@njit(parallel=True, cache=_CACHE, fastmath=True)
 def hard_zbuffer(uvz, box, znear, width, height, nbands, zbuf, fid):
     """Nearest face per pixel centre (largest 1/z), the faces given front to back by slab (depth_order); fid gets
     the row index into these arrays. Each band of rows is one task. Occlusion culling: every HIZ_BLOCK x HIZ_BLOCK
@@ -188,22 +165,11 @@ def hard_zbuffer(uvz, box, znear, width, height, nbands, zbuf, fid):
             if not visible:
                 continue
             # Edge functions (unnormalised; only signs matter here) and the screen-space plane of 1/z.
-            u0, v0, z0 = uvz[f, 0], uvz[f, 1], uvz[f, 2]
-            u1, v1, z1 = uvz[f, 3], uvz[f, 4], uvz[f, 5]
-            u2, v2, z2 = uvz[f, 6], uvz[f, 7], uvz[f, 8]
-            area2 = (u1 - u0) * (v2 - v0) - (v1 - v0) * (u2 - u0)
-            sg = np.float32(1.0) if area2 > 0 else np.float32(-1.0)
-            n0x, n0y = sg * (v1 - v0), -sg * (u1 - u0)
-            n1x, n1y = sg * (v2 - v1), -sg * (u2 - u1)
-            n2x, n2y = sg * (v0 - v2), -sg * (u0 - u2)
-            d0, d1, d2 = -(n0x * u0 + n0y * v0), -(n1x * u1 + n1y * v1), -(n2x * u2 + n2y * v2)
+            n0x, n0y, d0, n1x, n1y, d1, n2x, n2y, d2, A, Bp, C = km.hard_lines(
+                uvz[f, 0], uvz[f, 1], uvz[f, 2], uvz[f, 3], uvz[f, 4], uvz[f, 5], uvz[f, 6], uvz[f, 7], uvz[f, 8])
             q0 = np.float32(1.0) / n0x if n0x != 0 else np.float32(0.0)
             q1 = np.float32(1.0) / n1x if n1x != 0 else np.float32(0.0)
             q2 = np.float32(1.0) / n2x if n2x != 0 else np.float32(0.0)
-            ia = np.float32(1.0) / area2
-            A = ((z1 - z0) * (v2 - v0) - (z2 - z0) * (v1 - v0)) * ia
-            Bp = ((z2 - z0) * (u1 - u0) - (z1 - z0) * (u2 - u0)) * ia
-            C = z0 - A * u0 - Bp * v0
             ff = np.int32(f)
             stale = False  # a pixel holding its block's minimum was overwritten
             for iy in range(ya, yb + 1):
@@ -238,7 +204,7 @@ def hard_zbuffer(uvz, box, znear, width, height, nbands, zbuf, fid):
     return evals.sum()
 
 
-@njit(parallel=True, cache=True, fastmath=True)
+@njit(parallel=True, cache=_CACHE, fastmath=True)
 def hard_resolve(uvz, order, pos, faces, w2c, colors, fid, width, height, perspective, bg, rgb, depth, normal,
                  face_id, won):
     """Interpolate the winning face's vertex colours, its depth and camera-facing normal at every pixel centre.
@@ -269,34 +235,12 @@ def hard_resolve(uvz, order, pos, faces, w2c, colors, fid, width, height, perspe
                 u2, v2, z2 = uvz[g, 6], uvz[g, 7], uvz[g, 8]
                 ia = 1.0 / ((u1 - u0) * (v2 - v0) - (v1 - v0) * (u2 - u0))
                 i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
-                # Camera-frame normal from the world positions (rotation only), turned towards the camera.
-                ax, ay, az = pos[i1, 0] - pos[i0, 0], pos[i1, 1] - pos[i0, 1], pos[i1, 2] - pos[i0, 2]
-                bx, by, bz = pos[i2, 0] - pos[i0, 0], pos[i2, 1] - pos[i0, 1], pos[i2, 2] - pos[i0, 2]
-                wx, wy, wz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
-                cx = w2c[0, 0] * wx + w2c[0, 1] * wy + w2c[0, 2] * wz
-                cy = w2c[1, 0] * wx + w2c[1, 1] * wy + w2c[1, 2] * wz
-                cz = w2c[2, 0] * wx + w2c[2, 1] * wy + w2c[2, 2] * wz
-                X0 = w2c[0, 0] * pos[i0, 0] + w2c[0, 1] * pos[i0, 1] + w2c[0, 2] * pos[i0, 2] + w2c[0, 3]
-                Y0 = w2c[1, 0] * pos[i0, 0] + w2c[1, 1] * pos[i0, 1] + w2c[1, 2] * pos[i0, 2] + w2c[1, 3]
-                Z0 = w2c[2, 0] * pos[i0, 0] + w2c[2, 1] * pos[i0, 1] + w2c[2, 2] * pos[i0, 2] + w2c[2, 3]
-                ln = math.sqrt(cx * cx + cy * cy + cz * cz)
-                if cx * X0 + cy * Y0 + cz * Z0 > 0:
-                    ln = -ln
-                if ln != 0.0:
-                    nx, ny, nz = cx / ln, cy / ln, cz / ln
-                else:
-                    nx, ny, nz = 0.0, 0.0, 0.0
+                nx, ny, nz = km.hard_face_normal(pos, faces, f, w2c)
             face_id[iy, ix] = f
-            px = ix + 0.5
-            b0 = ((u1 - px) * (v2 - py) - (v1 - py) * (u2 - px)) * ia
-            b1 = ((u2 - px) * (v0 - py) - (v2 - py) * (u0 - px)) * ia
-            b2 = 1.0 - b0 - b1
-            zinv = b0 * z0 + b1 * z1 + b2 * z2
-            if perspective:
-                b0, b1, b2 = b0 * z0 / zinv, b1 * z1 / zinv, b2 * z2 / zinv
+            b0, b1, b2, dep = km.hard_pixel(u0, v0, z0, u1, v1, z1, u2, v2, z2, ia, ix + 0.5, py, perspective)
             for c in range(3):
                 rgb[iy, ix, c] = b0 * colors[i0, c] + b1 * colors[i1, c] + b2 * colors[i2, c]
-            depth[iy, ix] = 1.0 / zinv
+            depth[iy, ix] = dep
             normal[iy, ix, 0], normal[iy, ix, 1], normal[iy, ix, 2] = nx, ny, nz
 
 
@@ -326,11 +270,11 @@ def rasterize_hard(positions, faces, colors, world_to_camera, K, width, height, 
     with screen-space barycentrics (perspective-correct on request). Returns RenderOutput: rgb, alpha (0/1; the
     covered share of the samples when supersampled), depth (view depth, 0 where empty), normal (camera-facing unit
     face normal, camera frame), face_id (-1 where empty), max_weight (1 for faces that win at least one sample),
-    pairs_evaluated (sample/face depth tests). backend: 'numba' (CPU) or 'warp' (NVIDIA Warp kernels on the tensors'
-    device, see render.warp_backend; needs the gpu extra); None: warp for CUDA tensors when Warp is installed, else
-    numba. linear_light: colours and background decoded from sRGB to linear light, interpolated and averaged over the
-    supersamples there, each pixel encoded back to sRGB (RenderOptions.linear_light; how a glTF viewer shows the
-    same vertex colours).
+    pairs_evaluated (sample/face depth tests). backend: 'numba' (CPU) or 'cuda' (the numba-cuda kernels on the
+    tensors' GPU, see render.cuda_backend; needs the gpu extra); None: cuda for CUDA tensors when numba-cuda can run
+    there, else numba (which renders on the CPU and returns CPU tensors). linear_light: colours and background decoded
+    from sRGB to linear light, interpolated and averaged over the supersamples there, each pixel encoded back to sRGB
+    (RenderOptions.linear_light; how a glTF viewer shows the same vertex colours).
     """
     vi = validate(positions, faces, colors, None, 1.0, world_to_camera, K, width, height, background)
     if not near > 0:
@@ -339,15 +283,15 @@ def rasterize_hard(positions, faces, colors, world_to_camera, K, width, height, 
     if linear_light:
         return _hard_linear_light(vi, near, perspective_correct, ss, backend)
     if backend is None:
-        from trisplat.render.warp_backend import available
+        from trisplat.render.device import cuda_unavailable
 
-        backend = "warp" if vi.positions.device.type == "cuda" and available() else "numba"
-    if backend == "warp":
-        from trisplat.render.warp_backend import rasterize_hard_warp
+        backend = "cuda" if vi.positions.device.type == "cuda" and cuda_unavailable() is None else "numba"
+    if backend == "cuda":
+        from trisplat.render.cuda_backend import rasterize_hard_cuda
 
-        return rasterize_hard_warp(vi, float(near), bool(perspective_correct), ss)
+        return rasterize_hard_cuda(vi, float(near), bool(perspective_correct), ss)
     if backend != "numba":
-        raise ValueError(f"backend must be 'numba' or 'warp', got {backend!r}")
+        raise ValueError(f"backend must be 'numba' or 'cuda', got {backend!r}")
     outs = []
     with torch.no_grad():
         pos = vi.positions.detach().to(torch.float32).cpu().numpy()

@@ -11,7 +11,7 @@ from trisplat.render.types import RenderOptions
 
 MAX_IMAGE_SIDE_PX = 16384  # larger images are refused as absurd (pixels per side)
 SUPERSAMPLE_FACTORS = (1, 2, 3, 4)
-BACKENDS = ("numba", "reference", "warp")
+BACKENDS = ("numba", "reference", "cuda")
 OPACITY_MODES = ("min", "mean")
 
 
@@ -23,11 +23,14 @@ def check_supersample(s, name: str = "supersample") -> int:
 
 
 def scan(t: torch.Tensor, bounds: bool = True) -> tuple[int, float, float]:
-    """Non-finite count, min and max of a tensor's values (vectorised numpy reductions, no big temporaries).
+    """Non-finite count, min and max of a tensor's values (vectorised numpy reductions, no big temporaries; on a GPU,
+    torch reductions there and one small copy back, not the tensor).
 
     Finiteness is read off a sum in the array's own dtype (one fast vectorised pass; NaN or Inf in the input always
     makes it non-finite); only a non-finite sum, which finite but huge values can also give, is re-checked element
     by element, and the count is made only on failure."""
+    if t.device.type != "cpu":
+        return _scan_on_device(t.detach().reshape(-1), bounds)
     a = t.detach().cpu().reshape(-1).numpy()
     if a.size == 0:
         return 0, 0.0, 0.0
@@ -43,6 +46,26 @@ def scan(t: torch.Tensor, bounds: bool = True) -> tuple[int, float, float]:
         f = a[np.isfinite(a)]
         return bad, float(f.min()) if f.size else 0.0, float(f.max()) if f.size else 0.0
     return 0, float(a.min()), float(a.max())
+
+
+def _scan_on_device(x: torch.Tensor, bounds: bool) -> tuple[int, float, float]:
+    """scan() of a flat tensor on its own device: the reductions there, their three numbers copied back at once."""
+    if x.numel() == 0:
+        return 0, 0.0, 0.0
+    ok = torch.isfinite(x) if x.is_floating_point() else None
+    bad = (x.numel() - ok.sum()) if ok is not None else torch.zeros((), dtype=torch.int64, device=x.device)
+    if not bounds:
+        return int(bad), 0.0, 0.0
+    f = x.double()
+    if ok is not None:
+        lo = torch.where(ok, f, torch.full_like(f, float("inf"))).amin()
+        hi = torch.where(ok, f, torch.full_like(f, float("-inf"))).amax()
+    else:
+        lo, hi = f.amin(), f.amax()
+    n, lo, hi = torch.stack([bad.double(), lo, hi]).tolist()
+    if n and not np.isfinite(lo):  # nothing finite
+        lo = hi = 0.0
+    return int(n), lo, hi
 
 
 @dataclass

@@ -19,13 +19,8 @@ def camera_center(world_to_camera: torch.Tensor) -> torch.Tensor:
 
 
 def _render_view(positions, faces, colors, opacities, sigma, w2c, K, width, height, bg, opts: RenderOptions):
-    if colors.ndim == 3:  # SH: evaluate per vertex with the direction camera centre -> vertex
-        if opts.backend == "warp":  # the Warp kernels of the SH colour, on the tensors' device
-            from trisplat.scene.warp_sh import eval_sh_warp
-
-            colors = eval_sh_warp(colors, positions - camera_center(w2c))
-        else:
-            colors = eval_sh(colors, positions - camera_center(w2c))
+    if colors.ndim == 3:  # SH: evaluate per vertex with the direction camera centre -> vertex (fused Numba kernels
+        colors = eval_sh(colors, positions - camera_center(w2c))  # on the CPU, torch on a GPU)
     if opts.linear_light:
         colors = srgb_to_linear_torch(colors)
         bg = srgb_to_linear_torch(bg)
@@ -38,10 +33,10 @@ def _render_view(positions, faces, colors, opacities, sigma, w2c, K, width, heig
         from trisplat.render.reference import render_reference
 
         out = render_reference(positions, faces, colors, opacities, sigma, w2c, K, W, H, bg, opts)
-    elif opts.backend == "warp":
-        from trisplat.render.warp_backend import render_warp
+    elif opts.backend == "cuda":
+        from trisplat.render.cuda_backend import render_cuda
 
-        out = render_warp(positions, faces, colors, opacities, sigma, w2c, K, W, H, bg, opts)
+        out = render_cuda(positions, faces, colors, opacities, sigma, w2c, K, W, H, bg, opts)
     else:
         from trisplat.render.splat import render_numba
 

@@ -22,8 +22,8 @@ class RenderOptions:
     (IEC 61966-2-1), interpolated, composited and averaged over the supersamples there, and the pixel is encoded back
     to sRGB; as a glTF viewer shows the same vertex colours (COLOR_0 is linear). False: all of it on the sRGB values.
     alpha_max: cap on per-pixel alpha (0.99). alpha_min: skip below (1/255). transmittance_min: early stop (1e-4).
-    backend: 'numba' (CPU kernels), 'warp' (NVIDIA Warp kernels on the tensors' device: CUDA, or Warp's CPU device;
-    needs the gpu extra) or 'reference' (dense PyTorch, the spec in code; slow, for tests).
+    backend: 'numba' (CPU kernels), 'cuda' (numba-cuda kernels on the tensors' GPU; needs the gpu extra; tile_size
+    8, 16, 24 or 32) or 'reference' (dense PyTorch, the spec in code; slow, for tests).
     min_area_px: faces whose projected area is below this (square pixels) are culled as degenerate.
     grazing_cos: faces seen edge-on, |cos(face normal, ray to centroid)| below this (unitless), are culled.
     reference_block: pixel block edge (pixels) of the dense reference (memory per block ~ faces x block^2).

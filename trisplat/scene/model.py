@@ -60,6 +60,13 @@ class TriangleScene:
         """View-independent RGB [V,3] from the DC term (what plain-colour exports carry)."""
         return sh_dc_to_rgb(self.sh[:, 0, :]).clamp(max=1.0)
 
+    def to(self, device: torch.device | str) -> TriangleScene:
+        """The scene with its tensors on `device` (itself when they are there already)."""
+        if self.positions.device == torch.device(device):
+            return self
+        return replace(self, positions=self.positions.to(device), sh=self.sh.to(device),
+                       opacity_logit=self.opacity_logit.to(device), faces=self.faces.to(device))
+
     def detached(self) -> TriangleScene:
         return replace(
             self,

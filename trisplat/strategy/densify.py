@@ -44,8 +44,10 @@ def densify(ts: ops.TrainableScene, growth: float, max_vertices: int, n_largest:
         largest = torch.topk(areas, min(n_largest, F)).indices
         n_sample = min(n_want, int((weight > 0).sum()))
         chosen = [largest]
-        if n_sample > 0:
-            chosen.append(torch.multinomial(weight, n_sample, replacement=False, generator=generator))
+        if n_sample > 0:  # drawn on the generator's device (the CPU's for a GPU run: the same draws as on the CPU)
+            at = weight.device if generator is None else generator.device
+            chosen.append(torch.multinomial(weight.to(at), n_sample, replacement=False,
+                                            generator=generator).to(weight.device))
         selected = torch.unique(torch.cat(chosen))
     added = ops.subdivide_faces(ts, selected)
     return DensifyResult(int(selected.numel()), added, "" if n_sample > 0 else "no blended faces; largest only")

@@ -18,7 +18,8 @@ def projected_edge_px(positions: torch.Tensor, faces: torch.Tensor, world_to_cam
                       K: torch.Tensor, near: float, width: int | None = None, height: int | None = None) -> torch.Tensor:
     """projected_edge_px_torch's values [F] (float32); the Numba kernel for CPU tensors."""
     if positions.device.type != "cpu":
-        return projected_edge_px_torch(positions, faces, world_to_camera, K, near, width, height)
+        return projected_edge_px_torch(positions, faces, world_to_camera.to(positions), K.to(positions), near, width,
+                                       height)
     pos = positions.detach().numpy()
     out = np.empty(len(faces), np.float32)
     check = width is not None and height is not None

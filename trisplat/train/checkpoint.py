@@ -45,19 +45,21 @@ def checkpoint_state(ts: ops.TrainableScene, step: int, total_steps: int, genera
     }
 
 
-def restore_trainable(ckpt: dict) -> ops.TrainableScene:
-    """Rebuild the TrainableScene (parameters, Adam state, faces, statistics) saved by checkpoint_state."""
-    params = {k: torch.nn.Parameter(v.clone()) for k, v in ckpt["params"].items()}
+def restore_trainable(ckpt: dict, device: torch.device | str | None = None) -> ops.TrainableScene:
+    """Rebuild the TrainableScene (parameters, Adam state, faces, statistics) saved by checkpoint_state, its tensors
+    on `device` (None: where the checkpoint's are; a checkpoint read from disk is on the CPU)."""
+    dev = ckpt["faces"].device if device is None else torch.device(device)
+    params = {k: torch.nn.Parameter(v.to(dev, copy=True)) for k, v in ckpt["params"].items()}
     groups = [{"params": [params[n]], "lr": ckpt["optimizer"][n]["lr"], "name": n} for n in ops.VERTEX_PARAMS]
     opt = ops.make_adam(groups)
     for n in ops.VERTEX_PARAMS:
         st = ckpt["optimizer"][n]["state"]
         if st:
-            opt.state[params[n]] = {k: (v.clone() if torch.is_tensor(v) else v) for k, v in st.items()}
+            opt.state[params[n]] = {k: (v.to(dev, copy=True) if torch.is_tensor(v) else v) for k, v in st.items()}
     F = int(ckpt["faces"].shape[0])
-    stats = {k: ckpt["face_stats"][k].clone() if k in ckpt["face_stats"] else torch.zeros(F)
+    stats = {k: ckpt["face_stats"][k].to(dev, copy=True) if k in ckpt["face_stats"] else torch.zeros(F, device=dev)
              for k in ops.FACE_STATS}  # checkpoints of older versions lack the newer statistics: they start at zero
-    return ops.TrainableScene(params=params, optimizer=opt, faces=ckpt["faces"].clone(),
+    return ops.TrainableScene(params=params, optimizer=opt, faces=ckpt["faces"].to(dev, copy=True),
                               opacity_floor=float(ckpt["opacity_floor"]),
                               linear_light=bool(ckpt.get("linear_light", False)), face_stats=stats)
 

@@ -283,8 +283,8 @@ class TrainConfig:
     tile_size: int = 16
     """Screen tile edge (px) of the renderer: faces are depth-sorted per tile."""
     backend: str = "numba"
-    """Renderer and loss kernels: 'numba' (CPU), 'warp' (NVIDIA Warp, on CUDA or Warp's CPU device; gpu extra) or
-    'reference' (dense PyTorch, slow; for tests). --device cuda turns numba into warp."""
+    """Renderer kernels: 'numba' (CPU), 'cuda' (numba-cuda kernels on an NVIDIA GPU; gpu extra) or 'reference'
+    (dense PyTorch, slow; for tests). --device cuda turns numba into cuda."""
 
     # -- bookkeeping
     log_every: int = 10

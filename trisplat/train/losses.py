@@ -6,15 +6,11 @@ import torch.nn.functional as F
 
 
 def photometric(pred: torch.Tensor, gt: torch.Tensor, lambda_dssim: float, backend: str = "numba") -> torch.Tensor:
-    """(1 - lambda) * L1 + lambda * (1 - SSIM) on [H,W,3] images (lambda 0 is the plain L1). backend 'warp': the
-    Warp kernels on the render's device (`trisplat.train.warp_ssim`, CPU or CUDA); otherwise the fused Numba loss
-    for CPU float32 renders (`trisplat.train.fused_ssim`). Other inputs take the torch version of either."""
+    """(1 - lambda) * L1 + lambda * (1 - SSIM) on [H,W,3] images (lambda 0 is the plain L1): the fused Numba loss for
+    CPU float32 renders (`trisplat.train.fused_ssim`), its torch version for anything else (a GPU render: torch's
+    convolutions there). `backend` (the renderer's) does not change the loss."""
     if lambda_dssim == 0:
         return (pred - gt).abs().mean()
-    if backend == "warp":
-        from trisplat.train.warp_ssim import photometric_loss_warp
-
-        return photometric_loss_warp(pred, gt, lambda_dssim)
     from trisplat.train.fused_ssim import photometric_loss
 
     return photometric_loss(pred, gt, lambda_dssim)
@@ -24,8 +20,9 @@ def depth_to_normal(depth: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor,
     """Camera-frame unit normals [H,W,3] from a view-depth map [H,W] (central differences of back-projected points),
     oriented towards the camera, and a validity mask [H,W] (border pixels and zero depth are invalid)."""
     H, W = depth.shape
-    v, u = torch.meshgrid(torch.arange(H, dtype=depth.dtype) + 0.5, torch.arange(W, dtype=depth.dtype) + 0.5,
-                          indexing="ij")
+    K = K.to(depth)
+    v, u = torch.meshgrid(torch.arange(H, dtype=depth.dtype, device=depth.device) + 0.5,
+                          torch.arange(W, dtype=depth.dtype, device=depth.device) + 0.5, indexing="ij")
     x = (u - K[0, 2]) / K[0, 0] * depth
     y = (v - K[1, 2]) / K[1, 1] * depth
     P = torch.stack([x, y, depth], -1)
@@ -37,7 +34,7 @@ def depth_to_normal(depth: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor,
     n = F.normalize(n, dim=-1, eps=1e-12)
     flip = (n * P).sum(-1, keepdim=True) > 0
     n = torch.where(flip, -n, n)
-    valid = torch.zeros(H, W, dtype=torch.bool)
+    valid = torch.zeros(H, W, dtype=torch.bool, device=depth.device)
     valid[1:-1, 1:-1] = (depth[1:-1, 1:-1] > 0) & (depth[2:, 1:-1] > 0) & (depth[:-2, 1:-1] > 0) \
         & (depth[1:-1, 2:] > 0) & (depth[1:-1, :-2] > 0)
     return n, valid
@@ -71,6 +68,7 @@ def vertex_depth(positions: torch.Tensor, world_to_camera: torch.Tensor, K: torc
     """MeshSplatting's vertex-depth term: |z_vertex - rendered surface depth at its pixel| for vertices that project
     inside the image onto covered pixels with a difference below max_diff (scene units)."""
     H, W = depth.shape
+    world_to_camera, K = world_to_camera.to(positions), K.to(positions)
     pc = positions @ world_to_camera[:3, :3].T + world_to_camera[:3, 3]
     z = pc[:, 2]
     front = z > 1e-6

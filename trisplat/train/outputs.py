@@ -59,13 +59,15 @@ def write_outputs(trainer, pruned) -> dict:
 
     The test split is scored with the opaque mesh (hard z-buffer render, the deliverable) and with the soft
     renderer at the final sigma, so the gap between them is on record; both at cfg.eval_supersample samples per
-    pixel side, the hard render also at one sample per pixel.
+    pixel side, the hard render also at one sample per pixel, on the trainer's device (the GPU's kernels give the
+    same images within float32 rounding); the files are written from the scene on the CPU.
     """
     from trisplat.eval.report import write_png
     from trisplat.eval.views import evaluate_run, render_view
 
     run_dir, data, cfg = trainer.run_dir, trainer.data, trainer.cfg
-    scene = trainer.ts.to_scene()
+    scene = trainer.ts.to_scene().to("cpu")
+    dev = trainer.device
     normalization = np.asarray(data.normalization, dtype=np.float64)
     from trisplat.io import capture_up
 
@@ -92,8 +94,8 @@ def write_outputs(trainer, pruned) -> dict:
     metrics: dict = {}
     if len(data.test_indices):
         ss = cfg.eval_supersample  # explicit: a config.json written before this setting existed does not name it
-        hard = evaluate_run(run_dir, "test", "hard", show_progress=False, supersample=ss)
-        soft = evaluate_run(run_dir, "test", "soft", report=False, show_progress=False, supersample=ss)
+        hard = evaluate_run(run_dir, "test", "hard", show_progress=False, supersample=ss, device=dev)
+        soft = evaluate_run(run_dir, "test", "soft", report=False, show_progress=False, supersample=ss, device=dev)
         metrics.update({"psnr": hard.psnr, "ssim": hard.ssim, "lpips": hard.lpips, "lpips_net": "alex-v0.1",
                         "soft_psnr": soft.psnr, "soft_ssim": soft.ssim, "test_views": len(hard.views),
                         "supersample": ss, "report": str(Path("eval_test") / "report.html")})
@@ -101,7 +103,7 @@ def write_outputs(trainer, pruned) -> dict:
             metrics["psnr_exposure_matched"] = hard.extra["psnr_exposure_matched"]
         if cfg.eval_supersample != 1:  # the same mesh with one sample per pixel centre (aliased edges), on record
             one = evaluate_run(run_dir, "test", "hard", out_dir=run_dir / "eval_test_1spp", report=False,
-                               show_progress=False, supersample=1)
+                               show_progress=False, supersample=1, device=dev)
             metrics.update({"psnr_1spp": one.psnr, "ssim_1spp": one.ssim, "lpips_1spp": one.lpips})
         metrics.update(_score_file(run_dir, data, ss, hard))
     if asset.texture_report is not None:

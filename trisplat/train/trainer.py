@@ -165,7 +165,7 @@ class Trainer:
                     random_size_factor=cfg.init_random_size)
                 self.init_report = report
             initial = _with_sh_degree(initial, cfg.sh_degree)
-            self.ts = ops.make_trainable(initial.detached(), {})
+            self.ts = ops.make_trainable(initial.detached().to(self.device), {})
             self.step = 0
             self.clock = schedules.Clock(total=cfg.steps)
             self._write_config(data_options or {}, data_path)
@@ -194,7 +194,7 @@ class Trainer:
                 "normalization": np.asarray(self.data.normalization).tolist()}
 
     def _restore(self, ckpt: dict) -> None:
-        self.ts = restore_trainable(ckpt)
+        self.ts = restore_trainable(ckpt, self.device)
         self.step = int(ckpt["step"])
         total, anchor_step, anchor_p = ckpt["extra"]["clock"]
         self.clock = schedules.Clock(int(total), int(anchor_step), float(anchor_p))
@@ -472,7 +472,7 @@ class Trainer:
         said on stderr and in the history, and recorded at once in checkpoints/last.pt (the last good state with the
         failure noted: a resumed run replays the same soup steps and does not try the same switch again; a
         --resume with another --connect-at tries again there, --resume --output soup finishes as a soup)."""
-        self.ts = restore_trainable(soup)
+        self.ts = restore_trainable(soup, self.device)
         self.connected, self.far_faces, self.background_faces = False, 0, 0
         error = f"{type(exc).__name__}: {str(exc).strip() or 'no message'}"
         self.switch_failed = True
@@ -542,7 +542,7 @@ class Trainer:
         # sparse grid over the contracted scene; with far_field 'soup' the surface is fused in the inner box (the
         # unit cube of the normalised frame, where the cameras are) and the soup beyond it is kept as a far-field
         # layer behind it
-        soup = self.ts.to_scene()
+        soup = self.ts.to_scene().to("cpu")  # (the switch works on the CPU; the surface goes back to the device)
         contracted = not masked and cfg.far_field == "fused"
         box = self.data.bounds if masked else inner_box()
         if contracted:
@@ -584,7 +584,7 @@ class Trainer:
             self.far_faces += sky.num_faces
             self.background_faces = sky.num_faces
             report.notes.append(f"a background sphere of {sky.num_faces} faces at radius {radius:.2f}")
-        ops.replace_scene(self.ts, surface)
+        ops.replace_scene(self.ts, surface.to(self.device))
         self.connected = True
         self.ts.linear_light = self.cfg.surface_linear_light
         self._log({"step": self.step, "wall_s": round(self.wall_s, 3), "switch": report.to_dict(),
@@ -687,13 +687,14 @@ class Trainer:
         them on disk) outside the timed loop, so wall time and --minutes planning measure training. Returns the
         seconds it took."""
         t0 = time.perf_counter()
-        pos = torch.tensor([[-0.5, -0.5, 2.0], [0.5, -0.5, 2.0], [0.0, 0.5, 2.0]], requires_grad=True)
-        sh = torch.zeros(3, num_sh_bases(self.cfg.sh_degree), 3, requires_grad=True)  # SH like training
-        out = rasterize(pos, torch.tensor([[0, 1, 2]], dtype=torch.int32), sh,
-                        torch.full((3,), 0.5), 0.5, torch.eye(4),
+        dev = self.device
+        pos = torch.tensor([[-0.5, -0.5, 2.0], [0.5, -0.5, 2.0], [0.0, 0.5, 2.0]], device=dev, requires_grad=True)
+        sh = torch.zeros(3, num_sh_bases(self.cfg.sh_degree), 3, device=dev, requires_grad=True)  # SH like training
+        out = rasterize(pos, torch.tensor([[0, 1, 2]], dtype=torch.int32, device=dev), sh,
+                        torch.full((3,), 0.5, device=dev), 0.5, torch.eye(4),
                         torch.tensor([[16.0, 0, 8], [0, 16.0, 8], [0, 0, 1]]), 16, 16, background=self.background,
                         backend=self.cfg.backend)
-        loss = losses.photometric(out.rgb, torch.full((16, 16, 3), 0.5), self.cfg.lambda_dssim,
+        loss = losses.photometric(out.rgb, torch.full((16, 16, 3), 0.5, device=dev), self.cfg.lambda_dssim,
                                   backend=self.cfg.backend)
         (loss + out.depth.sum() + out.normal.sum()).backward()
         return time.perf_counter() - t0
@@ -801,7 +802,7 @@ class Trainer:
     @torch.no_grad()
     def final_max_weight(self) -> torch.Tensor:
         """Max blending weight of every face over all training views, with the final sharp, opaque settings."""
-        mw = torch.zeros(self.ts.num_faces)
+        mw = torch.zeros(self.ts.num_faces, device=self.device)
         for i in self.data.train_indices:
             mw = torch.maximum(mw, self.render(int(i), 1.0).max_weight)
         return mw
@@ -832,8 +833,8 @@ class Trainer:
         if sh_degree is not None:
             scene = _with_sh_degree(scene, sh_degree)
         return float(np.mean([psnr_value(torch.as_tensor(render_view(
-            scene, self.data.cameras[int(i)], "hard", self.cfg.background, supersample=self.cfg.eval_supersample)),
-            self.gt(int(i))) for i in views]))
+            scene, self.data.cameras[int(i)], "hard", self.cfg.background, supersample=self.cfg.eval_supersample),
+            device=self.device), self.gt(int(i))) for i in views]))
 
     def finish(self) -> dict:
         """Final pruning pass, model and mesh files, test renders and metrics; marks the run finished."""
@@ -879,7 +880,7 @@ class Trainer:
             out = rasterize_hard(scene.positions, scene.faces, scene.sh, torch.as_tensor(cam.world_to_camera,
                                  dtype=torch.float32), torch.as_tensor(cam.K, dtype=torch.float32), cam.width,
                                  cam.height, self.background, near=self.cfg.near, linear_light=scene.linear_light)
-            hit = (out.alpha > 0.5).numpy()
+            hit = (out.alpha > 0.5).cpu().numpy()
             alpha = self.data.load_alpha(int(i))
             content = np.ones_like(hit) if alpha is None else np.asarray(alpha) > 0.5
             covered += float((hit & content).sum())
@@ -927,7 +928,7 @@ class Trainer:
             from trisplat.mesh.stats import mesh_statistics
             from trisplat.train.switch import sub_scene
 
-            scene = self.ts.to_scene()
+            scene = self.ts.to_scene().to("cpu")
             surface = sub_scene(scene, np.arange(scene.num_faces) < scene.num_faces - self.far_faces)
             st = mesh_statistics(surface.positions.numpy(), surface.faces.numpy()).to_dict()
             extra["mesh"] = {**metrics.get("mesh", {}), **{k: st[k] for k in metrics.get("mesh", {}) if k in st},
@@ -956,5 +957,5 @@ def _with_sh_degree(scene: TriangleScene, degree: int) -> TriangleScene:
     K = num_sh_bases(degree)
     sh = scene.sh
     if sh.shape[1] < K:
-        sh = torch.cat([sh, torch.zeros(sh.shape[0], K - sh.shape[1], 3, dtype=sh.dtype)], 1)
+        sh = torch.cat([sh, torch.zeros(sh.shape[0], K - sh.shape[1], 3, dtype=sh.dtype, device=sh.device)], 1)
     return dataclasses.replace(scene, sh=sh[:, :K].contiguous())  # (keeps every other field: linear_light too)
