@@ -109,8 +109,8 @@ def _box_room_depth(cam: Camera, half: float) -> np.ndarray:
     return s.astype(np.float32)  # ray z-component is 1 in the camera frame: s is the view depth
 
 
-@pytest.mark.parametrize("half", [3.0, 12.0])
-def test_room_seen_from_inside_is_one_closed_surface_on_its_walls(half):
+@pytest.mark.parametrize("half,res", [(3.0, 32), (6.0, 128)])
+def test_room_seen_from_inside_is_one_closed_surface_on_its_walls(half, res):
     # cameras near the centre of a cube room looking out in every direction: walls, floor and ceiling far beyond
     # the inner cube. The fused surface is one piece on the walls (within the depth of a contracted voxel there)
     i = np.arange(20) + 0.5
@@ -118,15 +118,32 @@ def test_room_seen_from_inside_is_one_closed_surface_on_its_walls(half):
     dirs = np.stack([np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi), np.cos(phi)], 1)
     cams = [look_at(0.1 * d, target=3 * d, size=48, focal=24.0) for d in dirs]
     depths = [_box_room_depth(c, half) for c in cams]
-    grid = ContractedGrid.for_resolution(32, outer_extent(1.5 * half))
+    grid = ContractedGrid.for_resolution(res, outer_extent(1.5 * half))
+    assert grid.extent > outer_extent(half)  # (the walls inside the grid)
     vol = fuse_contracted(cams, depths, grid, truncation_voxels=3.0, max_depth_voxels=6.0)
-    v, f = vol.surface()
+    v, f = vol.surface(drop_cavities=False)  # the room's inside is what its walls enclose: no cavity rule here
     x = uncontract(v)
     m = np.abs(x).max(1)
     depth_of_voxel = grid.voxel * stretch(v)
-    assert np.all(np.abs(m - half) < 1.5 * depth_of_voxel)  # every vertex on a wall
+    # the walls seen from inside: within a voxel's depth of the true walls, their normals pointing into the room
+    # (where the cameras are); behind them the unseen shell's back, facing away from the room
+    t = x[f]
+    n = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    c = t.mean(1)
+    cm = np.abs(c).max(1)
+    seen = np.abs(cm - half) < 0.05 * half  # (the unseen back lies a few voxels behind: far more, in the world)
+    assert seen.mean() > 0.4
+    a = np.abs(c[seen]).argmax(1)  # the wall each face is on
+    rows = np.arange(len(a))
+    inward = -np.sign(c[seen][rows, a]) * n[seen][rows, a]
+    assert np.median(inward) > 0.8 and (inward > 0).mean() > 0.85  # (normals of a staircase: not all straight)
+    assert np.all(m - half > -1.5 * depth_of_voxel)  # nothing in the room's free space
     st = mesh_statistics(v, f)
-    assert st.connected_components <= 2  # the walls' inside, and at most the back of the unseen shell behind them
+    assert st.connected_components <= 2  # the walls' inside, and the back of the unseen shell behind them
+    # with the cavity rule (for objects seen from outside) the room's inside walls would go: they enclose free space
+    v2, f2 = vol.surface()
+    assert not (np.abs(np.abs(uncontract(v2)).max(1) - half) < 0.05 * half).any()
     if half > 3.0:
         return
     # sparse: twice the resolution allocates about 4x the voxels (the walls' area), not 8x (the volume)

@@ -144,7 +144,7 @@ def test_far_field_soup_keeps_the_walls_as_loose_triangles_behind_the_inner_surf
     m = json.loads((run_dir / layout.METRICS).read_text())
     switch = next(h for h in _history(run_dir) if "switch" in h)
     assert switch["switch"]["space"] == "box"
-    assert m["far_field_faces"] - m["background_faces"] > 1000, m  # the walls: loose triangles
+    assert m["far_field_faces"] - m["background_faces"] > 200, m  # the walls: loose triangles
     assert m["psnr_by_layer"]["far_field"]["pixels"] > 0.05 and m["surface_pixels"] < 0.95, m["psnr_by_layer"]
     assert m["coverage"] >= 0.99
     _check_scores_by_layer(trainer, m["psnr_by_layer"])

@@ -602,7 +602,9 @@ class _ContractedSpace:
             self.pixel_share = self.pixel_shares(cameras, store)
             rep.pixel_share = [round(float(x), 4) for x in self.pixel_share]
         _integrate_batches(vol, cameras, store)
-        return vol.surface()
+        # no cavity rule: the scene is seen from inside, and the inside of a room is the free space its walls enclose
+        # (their normals point into it, as a cavity's do); unseen cavity walls go with the unseen faces
+        return vol.surface(drop_cavities=False)
 
     def to_world(self, v: np.ndarray) -> np.ndarray:
         from trisplat.mesh.contraction import uncontract
