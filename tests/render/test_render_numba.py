@@ -139,3 +139,25 @@ def test_box_pool_is_the_mean_over_each_pixels_samples_value_and_gradient(s, C):
     torch.testing.assert_close(gx, gref, rtol=0, atol=1e-12)
     assert torch.autograd.gradcheck(lambda t: _pool(t, s), (x,))
     assert not x.grad_fn and _pool(x.detach().float(), s).dtype == torch.float32
+
+
+def test_scatter_vertices_parallel_copies_sum_as_np_add_at():
+    """The backward's vertex scatter (per-thread private copies, then added) against numpy's unbuffered add, on
+    enough faces for its parallel path."""
+    from trisplat.render import kernels as kn
+
+    rng = np.random.default_rng(0)
+    V, F, f0 = 5_000, 60_000, 7
+    faces = rng.integers(0, V, size=(F + f0, 3)).astype(np.int32)
+    gp, gr, go = (rng.normal(size=(F, 3, 3)).astype(np.float32), rng.normal(size=(F, 3, 3)).astype(np.float32),
+                  rng.normal(size=(F, 3)).astype(np.float32))
+    assert F >= kn.SCATTER_SERIAL_BELOW
+    out = [np.zeros((V, 3), np.float32), np.zeros((V, 3), np.float32), np.zeros(V, np.float32)]
+    kn.scatter_vertices(faces, f0, gp, gr, go, *out)
+    ref = [np.zeros((V, 3)), np.zeros((V, 3)), np.zeros(V)]
+    idx = faces[f0:].reshape(-1)
+    np.add.at(ref[0], idx, gp.reshape(-1, 3))
+    np.add.at(ref[1], idx, gr.reshape(-1, 3))
+    np.add.at(ref[2], idx, go.reshape(-1))
+    for got, want in zip(out, ref):
+        np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-4)

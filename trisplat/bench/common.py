@@ -37,6 +37,7 @@ def machine_info() -> dict:
         "cpu": cpu,
         "cores": os.cpu_count(),
         "numba_threads": numba.get_num_threads(),
+        "numba_threading_layer": threading_layer(),
         "torch_threads": torch.get_num_threads(),
         "python": platform.python_version(),
         "torch": torch.__version__,
@@ -45,6 +46,17 @@ def machine_info() -> dict:
         "commit": commit or "unknown",
         "date": time.strftime("%Y-%m-%d %H:%M"),
     }}
+
+
+def threading_layer() -> str:
+    """The threading layer numba's parallel kernels run on (tbb, omp or workqueue), or what it is configured to
+    choose before the first parallel kernel has run."""
+    import numba
+
+    try:
+        return numba.threading_layer()
+    except ValueError:  # no parallel kernel has run yet
+        return f"not chosen yet (configured: {numba.config.THREADING_LAYER})"
 
 
 def _more_machine_info() -> dict:

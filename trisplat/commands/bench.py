@@ -27,6 +27,8 @@ LONG_SUITES: dict[str, tuple[str, str]] = {
                "cluster extra; long: tens of minutes)"),
     "texture": ("trisplat.bench.texture", "texturing a finished run (--run RUN): atlas, rows and solve seconds, "
                 "peak memory; regulariser weights scored on held-out training views"),
+    "step": ("trisplat.bench.step", "a run's training step stage by stage at 1..N threads: speed-up and serial fraction "
+             "(RUN as its argument; its checkpoints soup.pt and last.pt)"),
     "walk": ("trisplat.bench.walk", "spheres dropped on a run's mesh in a physics engine (PyBullet): how many stand on "
              "the surface, where the others fell through (RUN as its argument)"),
     "switch-memory": ("trisplat.bench.switch_memory", "peak memory of the soup-to-surface switch on a synthetic "
@@ -39,8 +41,8 @@ INDEX_MD = "index.md"
 
 
 def _usage() -> str:
-    lines = ["usage: trisplat bench {render,train,mesh,losses,poses,consumers,slam,blocks,texture,walk,switch-memory,gpu,"
-             "all} [options]   (trisplat bench SUITE --help for its options)",
+    lines = ["usage: trisplat bench {render,train,mesh,losses,poses,consumers,slam,blocks,texture,step,walk,switch-memory,"
+             "gpu,all} [options]   (trisplat bench SUITE --help for its options)",
              "", "Each suite writes <name>.json (with machine, versions, commit) and <name>.md into --out "
              f"(default {DEFAULT_OUT}/).", "", "suites:"]  # fmt: skip
     lines += [f"  {name:<9} {desc}" for name, (_, desc) in {**SUITES, **LONG_SUITES}.items()]

@@ -138,6 +138,24 @@ def drop_targets(positions: np.ndarray, faces: np.ndarray, cameras: Sequence, up
     return allp[pick], len(allp)
 
 
+def _static_mesh(pb, client, positions: np.ndarray, faces: np.ndarray) -> int:
+    """The mesh as one static concave body (Bullet's BVH triangle mesh). Read from a Wavefront OBJ file: PyBullet's
+    in-memory call refuses meshes of more than 2^17 vertices, a file has no such limit."""
+    import tempfile
+    from pathlib import Path
+
+    with tempfile.TemporaryDirectory(prefix="trisplat-walk-") as tmp:
+        path = Path(tmp) / "mesh.obj"
+        v = np.asarray(positions, np.float64)
+        f = np.asarray(faces, np.int64).reshape(-1, 3) + 1
+        with open(path, "w") as fh:
+            fh.write("".join(f"v {x:.9g} {y:.9g} {z:.9g}\n" for x, y, z in v))
+            fh.write("".join(f"f {a} {b} {c}\n" for a, b, c in f))
+        shape = pb.createCollisionShape(pb.GEOM_MESH, fileName=str(path), flags=pb.GEOM_FORCE_CONCAVE_TRIMESH,
+                                        physicsClientId=client)
+    return pb.createMultiBody(0, shape, physicsClientId=client)
+
+
 def simulate_drops(positions: np.ndarray, faces: np.ndarray, targets: np.ndarray, up: np.ndarray,
                    config: WalkConfig) -> list[Drop]:
     """Drop one sphere over each target (config.height radii above it, moved down to just under anything that
@@ -154,10 +172,7 @@ def simulate_drops(positions: np.ndarray, faces: np.ndarray, targets: np.ndarray
     try:
         pb.setGravity(*(-GRAVITY * up), physicsClientId=client)
         pb.setTimeStep(TIMESTEP, physicsClientId=client)
-        shape = pb.createCollisionShape(pb.GEOM_MESH, vertices=np.asarray(positions, np.float64).tolist(),
-                                        indices=np.asarray(faces, np.int32).reshape(-1).tolist(),
-                                        flags=pb.GEOM_FORCE_CONCAVE_TRIMESH, physicsClientId=client)
-        mesh = pb.createMultiBody(0, shape, physicsClientId=client)
+        mesh = _static_mesh(pb, client, positions, faces)
         pb.setCollisionFilterGroupMask(mesh, -1, 1, -1, physicsClientId=client)  # (mask -1: rays hit it too)
         # the drop point: `height` radii above the target, or just under whatever hangs lower over it
         above = targets + 1.5 * r * up
@@ -233,7 +248,7 @@ def plot_walk(report: WalkReport, positions: np.ndarray, path) -> None:
     ax.scatter(t[~ok] @ a, t[~ok] @ b, s=16, c="tab:red", marker="x", label=f"fell through ({int((~ok).sum())})")
     ax.set_aspect("equal")
     ax.legend(loc="upper right", fontsize=8)
-    ax.set_title("walk check: spheres dropped on upward-facing surfaces, seen from above")
+    ax.set_title("walk check (seen from above)", fontsize=10)
     ax.set_xticks([])
     ax.set_yticks([])
     fig.tight_layout()

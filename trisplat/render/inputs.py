@@ -157,15 +157,16 @@ def check_camera(world_to_camera, K, dtype, device) -> tuple[torch.Tensor, torch
     return w2c, Kt, batched
 
 
-def validate(positions, faces, colors, opacities, sigma, world_to_camera, K, width, height, background) -> ViewInputs:
+def validate(positions, faces, colors, opacities, sigma, world_to_camera, K, width, height, background,
+             check_values: bool = True) -> ViewInputs:
     """Check everything rasterize() receives; errors name the argument and what was expected (opacities None: unused,
-    ones)."""
+    ones). check_values False: shapes and dtypes only, no scan of the values (RenderOptions.check_values)."""
     pos = _as_tensor(positions, "positions")
     if not pos.is_floating_point():
         raise ValueError(f"positions must be a float tensor, got dtype {pos.dtype}")
     if pos.ndim != 2 or pos.shape[1] != 3:
         raise ValueError(f"positions must be [V,3], got {tuple(pos.shape)}")
-    bad = scan(pos, bounds=False)[0]
+    bad = scan(pos, bounds=False)[0] if check_values else 0
     if bad:
         raise ValueError(f"positions hold {bad} NaN or Inf values ({pos.shape[0]} vertices)")
     V, dev, dtype = pos.shape[0], pos.device, pos.dtype
@@ -176,7 +177,7 @@ def validate(positions, faces, colors, opacities, sigma, world_to_camera, K, wid
         raise ValueError(f"faces must be [F,3], got {tuple(fc.shape)}")
     if fc.dtype not in (torch.int32, torch.int64):
         fc = fc.long()
-    _, lo, hi = scan(fc)
+    _, lo, hi = scan(fc) if check_values else (0, 0, 0)
     if fc.numel() and (lo < 0 or hi >= V):
         raise ValueError(f"face indices must lie in [0, {V - 1}] (V={V}), got range [{int(lo)}, {int(hi)}]")
     col = _as_tensor(colors, "colors", dev)
@@ -187,7 +188,7 @@ def validate(positions, faces, colors, opacities, sigma, world_to_camera, K, wid
         or (col.ndim == 3 and col.shape[0] == V and col.shape[2] == 3 and col.shape[1] in (1, 4, 9, 16))
     ):
         raise ValueError(f"colors must be [V,3] RGB or [V,(d+1)^2,3] SH with V={V}, got {tuple(col.shape)}")
-    if scan(col, bounds=False)[0]:
+    if check_values and scan(col, bounds=False)[0]:
         raise ValueError("colors hold NaN or Inf")
     if opacities is None:  # callers that use no opacities (hard mode): ones, as a zero-stride view (nothing to scan)
         op = torch.ones(1, dtype=dtype, device=dev).expand(V)
@@ -195,7 +196,7 @@ def validate(positions, faces, colors, opacities, sigma, world_to_camera, K, wid
         op = _as_tensor(opacities, "opacities", dev)
         if not op.is_floating_point() or op.shape != (V,):
             raise ValueError(f"opacities must be a float [V] tensor with V={V}, got {tuple(op.shape)} {op.dtype}")
-        bad, lo, hi = scan(op)
+        bad, lo, hi = scan(op) if check_values else (0, 0.0, 1.0)
         if bad or op.numel() and (lo < 0 or hi > 1):
             raise ValueError("opacities must lie in [0, 1] (already through the sigmoid)")
     if isinstance(sigma, torch.Tensor):

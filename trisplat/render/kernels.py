@@ -8,7 +8,7 @@ Stages (all compiled, parallel, no atomics):
   setup_backward   pair gradients -> per face -> per face-vertex (positions, colours, opacity), exact chain
                    rule through the edge lines, the incentre normaliser 1/r = perimeter / (2 area), the
                    barycentric scales, 1/z, the camera-facing normal and the projection
-  scatter_vertices face-vertex gradients -> shared vertices (serial, so no atomics)
+  scatter_vertices face-vertex gradients -> shared vertices (each thread owns a range of vertices: no atomics)
 The per-face parameter vector THETA (float32) is the narrow boundary between the stages (layout: kernel_math.py).
 What a pixel computes from a face, the per-face setup and its chain rule are kernel_math's functions, shared with
 the CUDA kernels (cuda_kernels.py); this file is the CPU launch layer: tasks per tile, per-row spans, no atomics.
@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
 from numba import njit, prange
 
@@ -50,8 +51,9 @@ def setup_faces(pos, faces, w2c, K, rgb, opac, opacity_min, near, far, min_area,
 def bin_faces(theta, rect, ntiles, order, width, height, tile):
     """Pairs (face-major order) and per-tile lists of pair indices sorted front to back.
 
-    order [F] lists the faces by increasing sort key (centroid depth), equal keys in face order (a stable sort):
-    filling the tile lists in that order leaves each list sorted, with no per-tile sort.
+    order lists the faces with tiles (ntiles > 0; faces without may be in it too) by increasing sort key (centroid
+    depth), equal keys in face order (a stable sort): filling the tile lists in that order leaves each list sorted,
+    with no per-tile sort.
     Returns face_start [F+1], pair_face [P], tile_start [NT+1], tile_pairs [P] (indices into the face-major
     pair arrays) and its inverse pos_of [P]."""
     F = ntiles.shape[0]
@@ -84,7 +86,7 @@ def bin_faces(theta, rect, ntiles, order, width, height, tile):
     fill = tile_start[:-1].copy()
     tile_pairs = np.empty(tile_start[nt], np.int32)
     pos_of = np.empty(P, np.int32)  # face-major pair index -> position in the tile-ordered lists
-    for i in range(F):
+    for i in range(order.shape[0]):
         f = order[i]
         for p in range(face_start[f], face_start[f + 1]):
             t = pair_tile[p]
@@ -257,7 +259,8 @@ def raster_backward(theta, rect, pair_face, tile_start, tile_pairs, width, heigh
     """Gradient of sum(g_rgb*rgb + g_alpha*alpha + g_depth*depth + g_normal*normal) w.r.t. THETA, per pair.
 
     Walks each tile front to back again; the light still to come behind a face is the pixel total minus the
-    running prefix, so no division by (1 - a) is needed to recover T. Per-pair sums live in scalars."""
+    running prefix, so no division by (1 - a) is needed to recover T. Per-pair sums live in scalars. Every row of
+    pair_grad [P,N_THETA] is written (zeros behind a saturated tile): it needs no zero fill."""
     half = np.float32(0.5)
     sig = np.float32(sigma)
     alpha_min, alpha_max, t_min = np.float32(alpha_min), np.float32(alpha_max), np.float32(t_min)
@@ -288,8 +291,13 @@ def raster_backward(theta, rect, pair_face, tile_start, tile_pairs, width, heigh
         row_hi = np.full(th_, tw - 1, np.int64)
         ta = tile_start[t]
         loc, lrect, lf = _gather_tile(theta, rect, pair_face, tile_pairs, ta, tile_start[t + 1])
-        for j in range(lf.shape[0]):
+        n_tile = lf.shape[0]
+        for j in range(n_tile):
             if active == 0:
+                # every pixel saturated: the faces behind get no gradient (pair_grad is not zero-filled beforehand)
+                for jj in range(j, n_tile):
+                    for k in range(N_THETA):
+                        pair_grad[ta + jj, k] = 0.0
                 break
             th = loc[j]
             inv_r, o = th[T_INVR], th[T_OP]
@@ -441,13 +449,30 @@ def setup_backward(pos, faces, w2c, K, argmin, pair_grad, pos_of, face_start, f0
                              g_rgb_f[i], g_op_f[i])
 
 
-@njit(cache=_CACHE)
+SCATTER_SERIAL_BELOW = 20_000  # faces: fewer are scattered in one serial pass (the private copies cost more)
+
+
+@njit(parallel=True, cache=_CACHE)
+def _scatter_vertices(faces, f0, g_pos_f, g_rgb_f, g_op_f, g_pos, g_rgb, g_op, T):
+    """Accumulate the face-vertex gradients of faces f0.. on the shared vertices. No atomics, no copies: with T
+    threads, thread t reads every face corner and adds those whose vertex lies in its t-th of the vertex range (each
+    vertex's sum keeps the serial order of its corners: the result is the serial pass's, bit for bit)."""
+    n = g_pos_f.shape[0]
+    V = g_pos.shape[0]
+    for t in prange(T):
+        lo, hi = t * V // T, (t + 1) * V // T
+        for i in range(n):
+            for k in range(3):
+                v = faces[f0 + i, k]
+                if v < lo or v >= hi:
+                    continue
+                for c in range(3):
+                    g_pos[v, c] += g_pos_f[i, k, c]
+                    g_rgb[v, c] += g_rgb_f[i, k, c]
+                g_op[v] += g_op_f[i, k]
+
+
 def scatter_vertices(faces, f0, g_pos_f, g_rgb_f, g_op_f, g_pos, g_rgb, g_op):
-    """Accumulate the face-vertex gradients of faces f0.. on the shared vertices (serial: no atomics needed)."""
-    for i in range(g_pos_f.shape[0]):
-        for k in range(3):
-            v = faces[f0 + i, k]
-            for c in range(3):
-                g_pos[v, c] += g_pos_f[i, k, c]
-                g_rgb[v, c] += g_rgb_f[i, k, c]
-            g_op[v] += g_op_f[i, k]
+    """_scatter_vertices on numba's threads (one below SCATTER_SERIAL_BELOW faces)."""
+    T = 1 if len(g_pos_f) < SCATTER_SERIAL_BELOW else numba.get_num_threads()
+    _scatter_vertices(faces, f0, g_pos_f, g_rgb_f, g_op_f, g_pos, g_rgb, g_op, T)

@@ -10,6 +10,7 @@ from trisplat.io.colour import linear_to_srgb_torch, srgb_to_linear_torch
 from trisplat.render.inputs import make_options, validate
 from trisplat.render.types import RenderOptions, RenderOutput, downsample, stack_views
 from trisplat.scene.sh import eval_sh
+from trisplat.timing import stage
 
 
 def camera_center(world_to_camera: torch.Tensor) -> torch.Tensor:
@@ -64,7 +65,9 @@ def rasterize(
     opacity_mode='min' the arg-min vertex of each face gets its face's opacity gradient.
     """
     opts = make_options(options)
-    vi = validate(positions, faces, colors, opacities, sigma, world_to_camera, K, width, height, background)
+    with stage("r_validate"):
+        vi = validate(positions, faces, colors, opacities, sigma, world_to_camera, K, width, height, background,
+                      opts.check_values)
     outs = [
         _render_view(
             vi.positions,

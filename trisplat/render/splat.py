@@ -8,6 +8,7 @@ import numpy as np
 import torch
 
 from trisplat.render import kernels as kn
+from trisplat.timing import stage
 from trisplat.render.types import RenderOptions, RenderOutput
 
 BACKWARD_FACE_CHUNK = 1 << 16  # faces per chunk of the per-face backward (bounds its scratch memory)
@@ -48,38 +49,45 @@ def forward_numba(
     rgb_v, op_v, bg = _np32(vertex_rgb), _np32(opacities), _np32(background)
     F = fc.shape[0]
     tile = int(opts.tile_size)
-    theta = np.zeros((F, kn.N_THETA), np.float32)
-    rect = np.zeros((F, 4), np.int32)
+    # (setup_faces writes every face's ntiles, and theta, rect and argmin of the faces it keeps, the only ones read
+    # after it; culled faces keep the key 0)
+    theta = np.empty((F, kn.N_THETA), np.float32)
+    rect = np.empty((F, 4), np.int32)
     key = np.zeros(F, np.float32)
-    argmin = np.zeros(F, np.int8)
-    ntiles = np.zeros(F, np.int64)
-    kn.setup_faces(
-        pos,
-        fc,
-        w2c,
-        Kn,
-        rgb_v,
-        op_v,
-        opts.opacity_mode == "min",
-        float(opts.near),
-        float(opts.far),
-        float(opts.min_area_px),
-        float(opts.grazing_cos),
-        width,
-        height,
-        tile,
-        theta,
-        rect,
-        key,
-        argmin,
-        ntiles,
-    )
+    argmin = np.empty(F, np.int8)
+    ntiles = np.empty(F, np.int64)
+    with stage("r_setup"):
+        kn.setup_faces(
+            pos,
+            fc,
+            w2c,
+            Kn,
+            rgb_v,
+            op_v,
+            opts.opacity_mode == "min",
+            float(opts.near),
+            float(opts.far),
+            float(opts.min_area_px),
+            float(opts.grazing_cos),
+            width,
+            height,
+            tile,
+            theta,
+            rect,
+            key,
+            argmin,
+            ntiles,
+        )
     # Front-to-back face order: a stable sort of the depth keys (positive float32 depths order like their int32
     # bits, which numpy sorts by radix); culled faces (key 0, no tiles) sort first and are skipped by the binning.
-    order = np.argsort(key.view(np.int32), kind="stable").astype(np.int32)
-    face_start, pair_face, tile_start, tile_pairs, pos_of = kn.bin_faces(
-        theta, rect, ntiles, order, width, height, tile
-    )
+    with stage("r_sort"):
+        # only the faces on screen (bin_faces skips the others; on a surface seen from inside, most faces are culled)
+        shown = np.flatnonzero(ntiles).astype(np.int32)
+        order = shown[np.argsort(key[shown].view(np.int32), kind="stable")]
+    with stage("r_bin"):
+        face_start, pair_face, tile_start, tile_pairs, pos_of = kn.bin_faces(
+            theta, rect, ntiles, order, width, height, tile
+        )
     rgb = np.empty((height, width, 3), np.float32)
     alpha = np.empty((height, width), np.float32)
     depth = np.empty((height, width), np.float32)
@@ -87,30 +95,32 @@ def forward_numba(
     face_id = np.empty((height, width), np.int64)
     pair_weight = np.zeros(pair_face.shape[0], np.float32)
     evals = np.zeros(tile_start.shape[0] - 1, np.int64)
-    kn.raster_forward(
-        theta,
-        rect,
-        pair_face,
-        tile_start,
-        tile_pairs,
-        width,
-        height,
-        tile,
-        float(sigma),
-        float(opts.alpha_min),
-        float(opts.alpha_max),
-        float(opts.transmittance_min),
-        bool(opts.perspective_correct),
-        bg,
-        rgb,
-        alpha,
-        depth,
-        normal,
-        face_id,
-        pair_weight,
-        evals,
-    )
-    max_weight = kn.reduce_max_weight(pair_weight, face_start, pos_of)
+    with stage("r_raster"):
+        kn.raster_forward(
+            theta,
+            rect,
+            pair_face,
+            tile_start,
+            tile_pairs,
+            width,
+            height,
+            tile,
+            float(sigma),
+            float(opts.alpha_min),
+            float(opts.alpha_max),
+            float(opts.transmittance_min),
+            bool(opts.perspective_correct),
+            bg,
+            rgb,
+            alpha,
+            depth,
+            normal,
+            face_id,
+            pair_weight,
+            evals,
+        )
+    with stage("r_maxw"):
+        max_weight = kn.reduce_max_weight(pair_weight, face_start, pos_of)
     bins = _Bins(
         pos,
         fc,
@@ -134,32 +144,34 @@ def backward_numba(bins: _Bins, sigma, width, height, opts: RenderOptions, g_rgb
     """Exact gradients w.r.t. vertex positions [V,3], vertex colours [V,3] and vertex opacities [V] (float32)."""
     rgb, alpha, depth, normal = bins.images
     P = bins.pair_face.shape[0]
-    pair_grad = np.zeros((P, kn.N_THETA), np.float32)  # pairs after a tile saturates stay zero
-    kn.raster_backward(
-        bins.theta,
-        bins.rect,
-        bins.pair_face,
-        bins.tile_start,
-        bins.tile_pairs,
-        width,
-        height,
-        int(opts.tile_size),
-        float(sigma),
-        float(opts.alpha_min),
-        float(opts.alpha_max),
-        float(opts.transmittance_min),
-        bool(opts.perspective_correct),
-        bins.bg,
-        rgb,
-        alpha,
-        depth,
-        normal,
-        g_rgb,
-        g_alpha,
-        g_depth,
-        g_normal,
-        pair_grad,
-    )
+    with stage("rb_zero"):
+        pair_grad = np.empty((P, kn.N_THETA), np.float32)  # (raster_backward writes every row)
+    with stage("rb_raster"):
+        kn.raster_backward(
+            bins.theta,
+            bins.rect,
+            bins.pair_face,
+            bins.tile_start,
+            bins.tile_pairs,
+            width,
+            height,
+            int(opts.tile_size),
+            float(sigma),
+            float(opts.alpha_min),
+            float(opts.alpha_max),
+            float(opts.transmittance_min),
+            bool(opts.perspective_correct),
+            bins.bg,
+            rgb,
+            alpha,
+            depth,
+            normal,
+            g_rgb,
+            g_alpha,
+            g_depth,
+            g_normal,
+            pair_grad,
+        )
     F = bins.faces.shape[0]
     V = bins.pos.shape[0]
     g_pos = np.zeros((V, 3), np.float32)
@@ -171,21 +183,23 @@ def backward_numba(bins: _Bins, sigma, width, height, opts: RenderOptions, g_rgb
     g_op_f = np.empty((n, 3), np.float32)
     for f0 in range(0, F, BACKWARD_FACE_CHUNK):  # chunks keep the per-face-vertex buffers small
         m = min(F, f0 + BACKWARD_FACE_CHUNK) - f0
-        kn.setup_backward(
-            bins.pos,
-            bins.faces,
-            bins.w2c,
-            bins.K,
-            bins.argmin,
-            pair_grad,
-            bins.pos_of,
-            bins.face_start,
-            f0,
-            g_pos_f[:m],
-            g_rgb_f[:m],
-            g_op_f[:m],
-        )
-        kn.scatter_vertices(bins.faces, f0, g_pos_f[:m], g_rgb_f[:m], g_op_f[:m], g_pos, g_rgbv, g_op)
+        with stage("rb_setup"):
+            kn.setup_backward(
+                bins.pos,
+                bins.faces,
+                bins.w2c,
+                bins.K,
+                bins.argmin,
+                pair_grad,
+                bins.pos_of,
+                bins.face_start,
+                f0,
+                g_pos_f[:m],
+                g_rgb_f[:m],
+                g_op_f[:m],
+            )
+        with stage("rb_scatter"):
+            kn.scatter_vertices(bins.faces, f0, g_pos_f[:m], g_rgb_f[:m], g_op_f[:m], g_pos, g_rgbv, g_op)
     return g_pos, g_rgbv, g_op
 
 
@@ -194,9 +208,10 @@ class _SoftRasterize(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, positions, vertex_rgb, opacities, faces, sigma, w2c, K, width, height, background, opts, extra):
-        images, max_weight, face_id, evals, visible, bins = forward_numba(
-            positions, faces, vertex_rgb, opacities, sigma, w2c, K, width, height, background, opts
-        )
+        with stage("render_forward"):
+            images, max_weight, face_id, evals, visible, bins = forward_numba(
+                positions, faces, vertex_rgb, opacities, sigma, w2c, K, width, height, background, opts
+            )
         ctx.bins, ctx.sigma, ctx.size, ctx.opts = bins, sigma, (width, height), opts
         ctx.dtypes = (positions.dtype, vertex_rgb.dtype, opacities.dtype)
         extra.update(
@@ -208,9 +223,10 @@ class _SoftRasterize(torch.autograd.Function):
     @staticmethod
     def backward(ctx, g_rgb, g_alpha, g_depth, g_normal):
         w, h = ctx.size
-        g_pos, g_col, g_op = backward_numba(
-            ctx.bins, ctx.sigma, w, h, ctx.opts, _np32(g_rgb), _np32(g_alpha), _np32(g_depth), _np32(g_normal)
-        )
+        with stage("render_backward"):
+            g_pos, g_col, g_op = backward_numba(
+                ctx.bins, ctx.sigma, w, h, ctx.opts, _np32(g_rgb), _np32(g_alpha), _np32(g_depth), _np32(g_normal)
+            )
         dp, dc, do = ctx.dtypes
         return (
             torch.from_numpy(g_pos).to(dp),

@@ -27,6 +27,10 @@ class RenderOptions:
     min_area_px: faces whose projected area is below this (square pixels) are culled as degenerate.
     grazing_cos: faces seen edge-on, |cos(face normal, ray to centroid)| below this (unitless), are culled.
     reference_block: pixel block edge (pixels) of the dense reference (memory per block ~ faces x block^2).
+    check_values: scan the inputs' values (NaN/Inf, face indices in range, opacities in [0, 1]) and refuse bad ones
+    with a precise error. False skips the scans (shapes and dtypes are still checked) for a caller that guarantees
+    them: the trainer checks its parameters every step, and the scans cost a pass over every array (bonsai's
+    414k-face surface with SH degree 3: 7 ms of a 190 ms step).
     """
 
     near: float = 0.01
@@ -43,6 +47,7 @@ class RenderOptions:
     min_area_px: float = 1e-6
     grazing_cos: float = 1e-4
     reference_block: int = 32
+    check_values: bool = True
 
 
 @dataclass

@@ -14,6 +14,7 @@ import torch
 from numba import njit, prange
 
 from trisplat.scene.sh import C0, C1, C2, C3
+from trisplat.timing import stage
 
 CHUNKS = 64  # parallel chunks over vertices (per-chunk scratch, no allocation per vertex)
 NORM_EPS = 1e-12  # the oracle's clamp of |dir|
@@ -162,10 +163,11 @@ class FusedSH(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, sh, dirs, K):
-        sh_np, d_np = _arrays(sh, dirs)
-        out = np.empty((sh_np.shape[0], 3), sh_np.dtype)
-        live = np.empty((sh_np.shape[0], 3), np.bool_)
-        sh_forward(sh_np, d_np, K, out, live)
+        with stage("sh_forward"):
+            sh_np, d_np = _arrays(sh, dirs)
+            out = np.empty((sh_np.shape[0], 3), sh_np.dtype)
+            live = np.empty((sh_np.shape[0], 3), np.bool_)
+            sh_forward(sh_np, d_np, K, out, live)
         ctx.save_for_backward(sh, dirs)
         ctx.K, ctx.live = K, live
         return torch.from_numpy(out)
@@ -173,9 +175,10 @@ class FusedSH(torch.autograd.Function):
     @staticmethod
     def backward(ctx, g):
         sh, dirs = ctx.saved_tensors
-        sh_np, d_np = _arrays(sh, dirs)
-        g_np = np.ascontiguousarray(g.detach().to(sh.dtype).numpy())
-        g_sh = np.empty_like(sh_np)
-        g_d = np.empty_like(d_np)
-        sh_backward(sh_np, d_np, ctx.K, ctx.live, g_np, g_sh, g_d)
+        with stage("sh_backward"):
+            sh_np, d_np = _arrays(sh, dirs)
+            g_np = np.ascontiguousarray(g.detach().to(sh.dtype).numpy())
+            g_sh = np.empty_like(sh_np)
+            g_d = np.empty_like(d_np)
+            sh_backward(sh_np, d_np, ctx.K, ctx.live, g_np, g_sh, g_d)
         return torch.from_numpy(g_sh), torch.from_numpy(g_d).to(dirs.dtype), None

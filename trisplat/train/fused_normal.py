@@ -19,6 +19,8 @@ import math
 
 import numpy as np
 import torch
+
+from trisplat.timing import stage
 from numba import njit, prange
 
 NORMALIZE_EPS = 1e-12  # as torch.nn.functional.normalize
@@ -155,7 +157,8 @@ class _NormalConsistency(torch.autograd.Function):
         surf = np.empty((H, W), np.float32)
         nd = np.zeros((H, W, 3), np.float32)
         mask = np.zeros((H, W), np.bool_)
-        total, count = _forward(n, d, a, k, float(min_alpha), surf, nd, mask)
+        with stage("normal_term"):
+            total, count = _forward(n, d, a, k, float(min_alpha), surf, nd, mask)
         ctx.saved = (n, d, a, k, float(min_alpha), surf, nd, mask, int(count))
         return torch.tensor(total / count if count else 0.0, dtype=normal.dtype)
 
@@ -170,7 +173,8 @@ class _NormalConsistency(torch.autograd.Function):
         g_a = np.empty((H, W), np.float32)
         g_du = np.empty((H, W, 3), np.float32)
         g_dv = np.empty((H, W, 3), np.float32)
-        _backward(n, d, a, k, min_alpha, surf, nd, mask, float(grad) / count, g_n, g_d, g_a, g_du, g_dv)
+        with stage("normal_term"):
+            _backward(n, d, a, k, min_alpha, surf, nd, mask, float(grad) / count, g_n, g_d, g_a, g_du, g_dv)
         return torch.from_numpy(g_n), torch.from_numpy(g_d), torch.from_numpy(g_a), None, None
 
 

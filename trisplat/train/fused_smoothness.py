@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
 import torch
 from numba import njit, prange
@@ -39,18 +40,25 @@ def _normals(pos, faces, n, clen, ea, eb):
         eb[f, 0], eb[f, 1], eb[f, 2] = bx, by, bz
 
 
-@njit(cache=True)
-def _pairs(pairs, n, g_n, scale):
-    """Sum of n_a . n_b over the pairs; g_n[f] -= scale * n_other for each pair f belongs to (serial: a face is in
-    up to three pairs, so a parallel scatter would race)."""
-    total = 0.0
-    for e in range(pairs.shape[0]):
-        a, b = pairs[e, 0], pairs[e, 1]
-        total += n[a, 0] * n[b, 0] + n[a, 1] * n[b, 1] + n[a, 2] * n[b, 2]
-        for k in range(3):
-            g_n[a, k] -= scale * n[b, k]
-            g_n[b, k] -= scale * n[a, k]
-    return total
+@njit(parallel=True, cache=True)
+def _pairs(pairs, n, g_n, scale, T):
+    """Sum of n_a . n_b over the pairs; g_n[f] -= scale * n_other for each pair f belongs to. No atomics: with T
+    threads, thread t reads every pair and updates the faces in its t-th of the face range (a face's updates keep the
+    serial order)."""
+    E, F = pairs.shape[0], n.shape[0]
+    part = np.zeros(T)
+    for t in prange(T):
+        lo, hi = t * F // T, (t + 1) * F // T
+        for e in range(E):
+            a, b = pairs[e, 0], pairs[e, 1]
+            if lo <= a < hi:
+                part[t] += n[a, 0] * n[b, 0] + n[a, 1] * n[b, 1] + n[a, 2] * n[b, 2]  # counted by a's owner
+                for k in range(3):
+                    g_n[a, k] -= scale * n[b, k]
+            if lo <= b < hi:
+                for k in range(3):
+                    g_n[b, k] -= scale * n[a, k]
+    return part.sum()
 
 
 @njit(parallel=True, cache=True)
@@ -74,20 +82,26 @@ def _face_grads(n, clen, ea, eb, g_n, g_face):
         g_face[f, 0, 0], g_face[f, 0, 1], g_face[f, 0, 2] = -gAx - gBx, -gAy - gBy, -gAz - gBz
 
 
-@njit(cache=True)
-def _scatter(faces, g_face, g_pos):
-    for f in range(faces.shape[0]):
-        for k in range(3):
-            v = faces[f, k]
-            for c in range(3):
-                g_pos[v, c] += g_face[f, k, c]
+@njit(parallel=True, cache=True)
+def _scatter(faces, g_face, g_pos, T):
+    """g_pos[v] += the face-vertex gradients g_face [F,3,3] of v's faces (thread t adds those of the vertices in its
+    t-th of the vertex range: no atomics)."""
+    F, V = faces.shape[0], g_pos.shape[0]
+    for t in prange(T):
+        lo, hi = t * V // T, (t + 1) * V // T
+        for f in range(F):
+            for k in range(3):
+                v = faces[f, k]
+                if lo <= v < hi:
+                    for c in range(3):
+                        g_pos[v, c] += g_face[f, k, c]
 
 
 def smoothness_and_grad(positions: np.ndarray, faces: np.ndarray, pairs: np.ndarray) -> tuple[float, np.ndarray]:
     """(loss, d loss / d positions [V,3] float64) for float positions [V,3], int faces [F,3], int pairs [E,2]."""
     pos = np.ascontiguousarray(positions, dtype=np.float64)
-    fc = np.ascontiguousarray(faces, dtype=np.int64)
-    pr = np.ascontiguousarray(pairs, dtype=np.int64)
+    fc = np.ascontiguousarray(faces)  # int32 or int64 as given: no copy
+    pr = np.ascontiguousarray(pairs)
     F, E = len(fc), len(pr)
     g_pos = np.zeros_like(pos)
     if E == 0:
@@ -96,10 +110,11 @@ def smoothness_and_grad(positions: np.ndarray, faces: np.ndarray, pairs: np.ndar
     ea, eb = np.empty((F, 3)), np.empty((F, 3))
     _normals(pos, fc, n, clen, ea, eb)
     g_n = np.zeros((F, 3))
-    total = _pairs(pr, n, g_n, 1.0 / E)
+    T = numba.get_num_threads()
+    total = _pairs(pr, n, g_n, 1.0 / E, T)
     g_face = np.empty((F, 3, 3))
     _face_grads(n, clen, ea, eb, g_n, g_face)
-    _scatter(fc, g_face, g_pos)
+    _scatter(fc, g_face, g_pos, T)
     return 1.0 - total / E, g_pos
 
 

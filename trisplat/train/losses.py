@@ -65,6 +65,17 @@ def normal_consistency_torch(normal: torch.Tensor, depth: torch.Tensor, alpha: t
 
 def vertex_depth(positions: torch.Tensor, world_to_camera: torch.Tensor, K: torch.Tensor, depth: torch.Tensor,
                  alpha: torch.Tensor, max_diff: float, min_alpha: float = 0.5) -> torch.Tensor:
+    """vertex_depth_torch's value and gradient; one fused Numba pass for CPU float32 tensors
+    (trisplat.train.fused_vertex_depth)."""
+    if all(t.device.type == "cpu" and t.dtype == torch.float32 for t in (positions, depth, alpha)):
+        from trisplat.train.fused_vertex_depth import vertex_depth_fused
+
+        return vertex_depth_fused(positions, world_to_camera, K, depth, alpha, max_diff, min_alpha)
+    return vertex_depth_torch(positions, world_to_camera, K, depth, alpha, max_diff, min_alpha)
+
+
+def vertex_depth_torch(positions: torch.Tensor, world_to_camera: torch.Tensor, K: torch.Tensor, depth: torch.Tensor,
+                       alpha: torch.Tensor, max_diff: float, min_alpha: float = 0.5) -> torch.Tensor:
     """MeshSplatting's vertex-depth term: |z_vertex - rendered surface depth at its pixel| for vertices that project
     inside the image onto covered pixels with a difference below max_diff (scene units)."""
     H, W = depth.shape

@@ -1,0 +1,42 @@
+"""Stage timing of a training step, for `trisplat bench step`: named wall-clock sums, switched off by default.
+
+Code marks its stages with `with stage("render_forward"):`; while `recording()` is active the seconds are summed per
+name (stages may nest: an inner stage's time is also inside its outer one's), otherwise a stage costs one attribute
+read. Not thread-safe across Python threads (the step runs in one; the kernels' own threads are inside a stage).
+"""
+from __future__ import annotations
+
+import time
+from contextlib import contextmanager
+
+_TIMES: dict[str, float] | None = None
+
+
+class stage:
+    """Context manager adding the wall time of its block to `name` while recording."""
+
+    __slots__ = ("name", "t0")
+
+    def __init__(self, name: str):
+        self.name = name
+
+    def __enter__(self):
+        if _TIMES is not None:
+            self.t0 = time.perf_counter()
+        return self
+
+    def __exit__(self, *exc):
+        if _TIMES is not None:
+            _TIMES[self.name] = _TIMES.get(self.name, 0.0) + time.perf_counter() - self.t0
+        return False
+
+
+@contextmanager
+def recording():
+    """Record the stages inside the block; yields the dict of seconds per stage name (filled as it goes)."""
+    global _TIMES
+    outer, _TIMES = _TIMES, {}
+    try:
+        yield _TIMES
+    finally:
+        _TIMES = outer
