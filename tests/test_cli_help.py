@@ -203,3 +203,31 @@ def test_flow_and_help_description(monkeypatch):
     lines = help_description("A description\n    wrapped in the source, " + "word " * 40).splitlines()
     assert len(lines) > 1 and all(len(line) <= 60 and not line.startswith(" ") for line in lines)
     assert lines[0].startswith("A description wrapped in the source,")
+
+
+@pytest.mark.parametrize("command", [c for c in COMMANDS if c != "bench"])
+def test_every_command_names_itself_in_its_usage(command, capsys, monkeypatch):
+    """`trisplat COMMAND --help` starts with `usage: trisplat COMMAND`, not the path of the script that ran it."""
+    text = _help(command, capsys, monkeypatch)
+    assert text.startswith(f"usage: trisplat {command} "), text[:200]
+
+
+def _suites() -> list[str]:
+    from trisplat.commands.bench import LONG_SUITES, SUITES
+
+    return [*SUITES, *LONG_SUITES]
+
+
+@pytest.mark.parametrize("suite", _suites())
+def test_every_bench_suite_names_itself_in_its_usage(suite, capsys, monkeypatch):
+    """`trisplat bench SUITE --help` starts with `usage: trisplat bench SUITE` (bench render once printed
+    `usage: .../bin/trisplat [-h]`); `trisplat bench --help` and `trisplat bench all --help` print the suites."""
+    monkeypatch.setenv("COLUMNS", "129")
+    with pytest.raises(SystemExit) as exc:
+        main(["bench", suite, "--help"])
+    assert exc.value.code == 0
+    text = capsys.readouterr().out
+    assert text.startswith(f"usage: trisplat bench {suite} "), text[:200]
+    for argv in (["bench", "--help"], ["bench", "all", "--help"]):
+        assert main(argv) == 0
+        assert capsys.readouterr().out.startswith("usage: trisplat bench {")

@@ -58,24 +58,11 @@ def test_shaded_surface_is_grey_headlight_lambert_whatever_the_colours():
 @pytest.fixture(scope="module")
 def evaluated(tmp_path_factory):
     """A 'finished' run whose model is the true mesh, evaluated on 6 test views."""
-    from trisplat.data import load_dataset
-    from trisplat.io import save_model_ply
-    from trisplat.synth import demo_mesh, write_blender_scene
+    from true_mesh_run import write_true_mesh_run
 
-    root = tmp_path_factory.mktemp("report")
-    mesh = demo_mesh()
-    capture = write_blender_scene(root / "capture", mesh, n_train=2, n_test=6, width=32, height=32,
-                                  samples_per_pixel=1, n_points=0)
-    N = load_dataset(capture).normalization
-    run = root / "run"
-    run.mkdir()
-    (run / "config.json").write_text(json.dumps({"data": str(capture), "data_options": {}, "eval_supersample": 1}))
-    (run / "state.json").write_text(json.dumps({"finished": True, "step": 1, "total_steps": 1}))
+    _, run, _ = write_true_mesh_run(tmp_path_factory.mktemp("report"), n_train=2, n_test=6, width=32, height=32)
     (run / "history.jsonl").write_text("".join(json.dumps({"step": s, "wall_s": s, "psnr": 20 + s, "faces": 100})
                                                + "\n" for s in (1, 2, 3)))
-    pos = mesh.vertices @ N[:3, :3].T + N[:3, 3]
-    save_model_ply(run / "model.ply", TriangleScene.from_rgb(pos, mesh.faces, mesh.visual.vertex_colors[:, :3] / 255,
-                                                             opacity=0.999), N)
     m = evaluate_run(run, "test", "hard", show_progress=False)
     return run / "eval_test", m
 

@@ -14,24 +14,10 @@ from trisplat.cli import main as cli_main
 @pytest.fixture(scope="module")
 def downscaled_run(tmp_path_factory):
     """A capture, and a 'trained' run of it at --downscale 2 whose model is the true mesh."""
-    from trisplat.data import load_dataset
-    from trisplat.io import save_model_ply
-    from trisplat.scene.model import TriangleScene
-    from trisplat.synth import demo_mesh, write_blender_scene
+    from true_mesh_run import write_true_mesh_run
 
-    root = tmp_path_factory.mktemp("names")
-    mesh = demo_mesh()
-    capture = write_blender_scene(root / "capture", mesh, n_train=4, n_test=2, width=40, height=40,
-                                  samples_per_pixel=1, n_points=0)
-    data = load_dataset(capture, downscale=2)
-    N = data.normalization
-    run = root / "run"
-    run.mkdir()
-    (run / "config.json").write_text(json.dumps({"data": str(capture), "data_options": {"downscale": 2}}))
-    (run / "state.json").write_text(json.dumps({"finished": True, "step": 1, "total_steps": 1}))
-    pos = mesh.vertices @ N[:3, :3].T + N[:3, 3]
-    save_model_ply(run / "model.ply", TriangleScene.from_rgb(pos, mesh.faces, np.full((len(pos), 3), 0.5),
-                                                             opacity=0.999), N)
+    capture, run, data = write_true_mesh_run(tmp_path_factory.mktemp("names"), n_train=4, n_test=2, width=40,
+                                             height=40, grey=True, downscale=2)
     return capture, run, data
 
 

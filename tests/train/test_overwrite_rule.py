@@ -14,23 +14,10 @@ from trisplat.cli import main as cli_main
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
     """A small capture and a 'finished' run of it whose model is the true mesh."""
-    from trisplat.data import load_dataset
-    from trisplat.io import save_model_ply
-    from trisplat.scene.model import TriangleScene
-    from trisplat.synth import demo_mesh, write_blender_scene
+    from true_mesh_run import write_true_mesh_run
 
-    root = tmp_path_factory.mktemp("overwrite")
-    mesh = demo_mesh()
-    capture = write_blender_scene(root / "capture", mesh, n_train=3, n_test=1, width=24, height=24,
-                                  samples_per_pixel=1, n_points=0)
-    N = load_dataset(capture).normalization
-    run = root / "run"
-    run.mkdir()
-    (run / "config.json").write_text(json.dumps({"data": str(capture), "data_options": {}, "eval_supersample": 1}))
-    (run / "state.json").write_text(json.dumps({"finished": True, "step": 1, "total_steps": 1}))
-    pos = mesh.vertices @ N[:3, :3].T + N[:3, 3]
-    save_model_ply(run / "model.ply", TriangleScene.from_rgb(pos, mesh.faces, np.full((len(pos), 3), 0.5),
-                                                             opacity=0.999), N)
+    _, run, _ = write_true_mesh_run(tmp_path_factory.mktemp("overwrite"), n_train=3, n_test=1, width=24, height=24,
+                                    grey=True)
     return run
 
 

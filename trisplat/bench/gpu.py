@@ -360,7 +360,7 @@ def markdown(report: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = tyro.cli(BenchGpuArgs, args=argv, description=__doc__, config=CLI_STYLE)
+    args = tyro.cli(BenchGpuArgs, args=argv, prog="trisplat bench gpu", description=__doc__, config=CLI_STYLE)
     t_start = time.perf_counter()
     import numba
     import torch

@@ -132,7 +132,7 @@ CASES = [  # width, height, faces, min px, max px
 
 
 def main(argv: list[str] | None = None) -> int:
-    cfg = tyro.cli(BenchRenderConfig, args=argv, description=__doc__, config=CLI_STYLE)
+    cfg = tyro.cli(BenchRenderConfig, args=argv, prog="trisplat bench render", description=__doc__, config=CLI_STYLE)
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     if cfg.case:
         w, h, n, lo, hi, ref = cfg.case.split(",")

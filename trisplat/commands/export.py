@@ -9,7 +9,7 @@ from typing import Annotated, Literal
 import tyro
 
 from trisplat.commands.style import CLI_STYLE, NO_DEFAULT_HINT, flowing_help
-from trisplat.io.export_run import EXPORT_FORMATS, export_run, export_targets
+from trisplat.io.export_run import EXPORT_FORMATS, export_targets
 
 EXPORT_SUBDIR = "export"
 
@@ -60,7 +60,9 @@ def main(argv: list[str]) -> int:
         print(f"trisplat export: error: would overwrite {names}; pass --force to replace them", file=sys.stderr)
         return 1
     up = None if cfg.up == "capture" else cfg.up
-    for path in export_run(cfg.run, formats=formats, up=up, out_dir=out, faces=cfg.faces, texture_size=cfg.texture_size,
-                           fit_colours=cfg.fit_colours):
+    from trisplat.api import export
+
+    for path in export(cfg.run, out, formats=formats, up=up, faces=cfg.faces, texture_size=cfg.texture_size,
+                       fit_colours=cfg.fit_colours, force=True):  # the path of trisplat.api.export (checked above)
         print(path)
     return 0

@@ -38,26 +38,7 @@ class SlamArgs:
 
 def main(argv: list[str]) -> int:
     args = tyro.cli(SlamArgs, args=argv, prog="trisplat slam", description=__doc__, config=CLI_STYLE)
-    import torch
+    from trisplat.api import slam_from_args
 
-    from trisplat.data.rgbd_stream import open_stream
-    from trisplat.run import prepare_run_dir
-    from trisplat.slam.system import CHECKPOINT, run_slam
-
-    prepare_run_dir(args.out, args.resume, args.force, checkpoint=CHECKPOINT)  # before reading the capture
-    torch.set_num_threads(max(1, torch.get_num_threads()))
-    stream = open_stream(args.capture, depth_scale=args.depth_scale)
-    print(f"{stream.format} stream: {len(stream)} frames {stream.width}x{stream.height}, processing at "
-          f"1/{args.slam.downscale}; reference poses: {'yes' if stream.has_reference else 'no'}", flush=True)
-    for w in stream.warnings:
-        print(f"warning: {w}", flush=True)
-    from trisplat.data.colour_registration import apply_colour_registration
-
-    print(apply_colour_registration(stream, args.colour_registration).describe(stream.K), flush=True)
-    from trisplat.slam.warmup import warm_up
-
-    print("preparing the kernels (compiled once, then cached) ...", flush=True)
-    compile_s = warm_up(args.slam)
-    print(f"kernels ready in {compile_s:.1f} s (not counted in the run's frames/s)", flush=True)
-    run_slam(stream, args.out, args.slam, resume=args.resume, force=args.force, compile_s=compile_s)
+    slam_from_args(args)  # the path of trisplat.api.slam
     return 0

@@ -341,16 +341,14 @@ def main(argv: list[str]) -> int:
 
     if blocks_requested(args.blocks, args.shared) or args.plan:  # partitioned training (trisplat.blocks); --blocks 1: one run
         return _train_blocks(args, argv)
-    try:
-        check_cheap_options(args)  # a typo costs nothing, not minutes of structure from motion
-        args = pose_plain_photos(args)
-        explicit = explicit_fields(argv)
-        args = choose_downscale(args, explicit)
-        result = run_training(args, explicit)
+    from trisplat.api import train_from_args
+
+    try:  # the path of trisplat.api.train: cheap checks, photos posed, resolution chosen, run_training
+        run = train_from_args(args, explicit_fields(argv))
     except FileExistsError as exc:
         print(f"trisplat train: {exc}", file=sys.stderr)
         return 1
-    for line in final_lines(result.metrics, result.wall_s, result.run_dir):
+    for line in final_lines(run.metrics, run.wall_s, run.path):
         print(line)
     return 0  # the run finished and wrote its files; whether to trust them is metrics.json's `health`
 
