@@ -235,9 +235,10 @@ def record_run(run_dir: str | Path, scene: str, input: str, command: str, out: s
                commit: str | None = None, note: str | None = None, preset: str | None = None) -> Path:
     """Write out/run_<scene>.json: a finished `trisplat train` run's scores (its metrics.json) as a one-row bench
     table with RUN_COLUMNS. The machine facts are this machine's (say where the run was made, when not here) less
-    the thread counts (those of this process, not the run's); `commit` the code the run was trained with (a run
-    folder does not record it: 'unknown' unless given); `preset` (config.json does not name it): by default the
-    command's --preset, 'fast' for `trisplat demo`, else 'default'; the date is metrics.json's."""
+    the thread counts (those of this process, not the run's); `commit` the code the run was trained with (by default
+    metrics.json's `code`, which runs record since issue 50; 'unknown' for older runs unless given); `preset`
+    (config.json does not name it): by default the command's --preset, 'fast' for `trisplat demo`, else 'default';
+    the date is metrics.json's."""
     from trisplat.bench.common import machine_info
 
     run_dir = Path(run_dir)
@@ -249,7 +250,11 @@ def record_run(run_dir: str | Path, scene: str, input: str, command: str, out: s
     ended = (run_dir / "metrics.json").stat().st_mtime
     machine = {k: v for k, v in machine_info().items() if k not in ("numba_threads", "torch_threads",
                                                                     "numba_threading_layer", "commit_dirty")}
-    machine.update(commit=commit or "unknown", started=time.strftime("%Y-%m-%d %H:%M", time.gmtime(started)),
+    code = m.get("code") or {}  # (runs trained since the trainer records its commit)
+    commit = commit or code.get("commit") or "unknown"
+    if code.get("dirty"):
+        machine["commit_dirty"] = True
+    machine.update(commit=commit, started=time.strftime("%Y-%m-%d %H:%M", time.gmtime(started)),
                    date=time.strftime("%Y-%m-%d %H:%M", time.gmtime(ended)))
     surface = m.get("surface_pixels")
     if preset is None:
