@@ -71,8 +71,8 @@ def test_the_report_shows_problems_and_warnings(tmp_path):
     add_to_report(page, verdict(RunHealth(), 25.0, 1.0), {"surface": {"pixels": 0.316, "psnr": 23.28},
                                                           "far_field": {"pixels": 0.684, "psnr": 24.1}})
     text = page.read_text()
-    assert "<td>connected surface</td><td>31.6%</td><td>23.28 dB</td>" in text
-    assert "<td>far-field layer</td><td>68.4%</td><td>24.10 dB</td>" in text
+    assert "<td>the connected surface (its piece that shows the most)</td><td>31.6%</td><td>23.28 dB</td>" in text
+    assert "<td>far-field layer (independent triangles)</td><td>68.4%</td><td>24.10 dB</td>" in text
     assert text.index("</h1>") < text.index("id='layers'") < text.index("<p>scores")
 
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import shutil
 import sys
 import threading
@@ -546,6 +547,8 @@ def run_poses(source: str | Path, out: str | Path, options: PosesOptions | None 
         else:
             _copy_distorted(model_dir, image_dir, reg_names, out)
         times["undistortion"] = time.perf_counter() - t
+    say(f"      {sum(times.values()) / 60:.1f} min on {os.cpu_count()} cores: "
+        + ", ".join(f"{name} {sec:.0f} s" for name, sec in times.items() if sec >= 0.5))
 
     cam = next(iter(best.cameras.values()))
     report = PosesReport(

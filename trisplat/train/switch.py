@@ -61,7 +61,7 @@ class SurfaceConfig:
     """grid size cap, dense voxels ('box') or allocated ones ('contracted'; the resolution is lowered until it
     fits) (memory: about 10 bytes per voxel; time: voxels x views projections)."""
     truncation_voxels: float = 3.0
-    """TSDF truncation distance (voxels). The trainer passes trisplat.train.trainer.surface_truncation (6 voxels for
+    """TSDF truncation distance (voxels). The trainer passes trisplat.train.connect.surface_truncation (6 voxels for
     objects, 3 for real photos, or --surface-truncation); SLAM and the merge of partitioned blocks use this default."""
     retry_truncations: tuple[float, ...] = ()
     """truncations (fractions of the fused box's longest side) to fuse with in turn while the surface carves away

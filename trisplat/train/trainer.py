@@ -29,45 +29,21 @@ from trisplat.timing import stage
 from trisplat.train import losses, schedules
 from trisplat.train.checkpoint import atomic_torch_save, checkpoint_state, load_checkpoint, restore_trainable
 from trisplat.train.config import TrainConfig
+from trisplat.train.connect import (  # noqa: F401 (re-exported: the switch's constants, tests use them)
+    GROUND_REACH,
+    UNBOUNDED_MAX_DEPTH,
+    UNBOUNDED_RETRY_TRUNCATIONS,
+    connect,
+    surface_truncation,
+)
 from trisplat.train.health import RunHealth
+from trisplat.train.verdict import run_verdict
+from trisplat.train.verdict import test_pixels as verdict_test_pixels
 
 MAX_ROLLBACKS = 3
 MINUTES_WARMUP_STEPS = 10  # steps timed before a --minutes run sets its step count
 MINUTES_REPLAN_EVERY = 25  # steps between re-plans of a --minutes run (from the recent step rate)
 ROLLBACK_FORGIVEN_AFTER_EPOCHS = 1  # epochs past a failed step after which its rollbacks no longer count
-
-# Fusion switch on captures without alpha (photos of a scene): the thickness of unseen space behind what the views
-# measured, as a fraction of the fused box's side, is at least this. With the object default (0.01: 2 cm in the
-# inner box) the bonsai's soup fused into 8,400 pieces and the table with the bonsai on it, seen by 33 views, was a
-# piece apart from the floor's, below 2% of it, and dropped as a floater (its test views 5-13% covered by the
-# surface); at 0.025 it is part of the largest piece (29-38% covered, as much as marching cubes gave at all).
-UNBOUNDED_MAX_DEPTH = 0.025
-# ... and where the surface fused with the object default (3 voxels) carves away more than 10% of what the views saw
-# in the box, it is fused again with a truncation of 2%, then 4%, of the box's side (8 and 16.6 voxels on bonsai's
-# 414). A real capture's soup can put a surface at depths that differ between views by more than 3 voxels; each view
-# that sees past it votes its space free: bonsai's table and tree were carved out of the surface (marching cubes kept
-# a 15,785-face piece of them, dropped as a floater below 2% of the floor's), and the room came out without the object
-# at its centre (test views 15.8 dB straight after the switch; 19.2 dB at 8 voxels, 19.1 at 16). Not for every real
-# capture: on fox a larger truncation rounds detail off (22.9 dB straight after the switch at 3 voxels, 22.6 at 8,
-# 21.9 at 20), so it is tried only where the first surface lost what the views saw (docs/benchmarks.md, issue 24).
-UNBOUNDED_RETRY_TRUNCATIONS = (0.02, 0.04)
-# ... and with the whole scene fused (far_field 'fused'), where a floor is found under the cameras, what no view saw
-# between it and something solid up to this far above it (normalised units: the cameras lie within the unit sphere)
-# is solid: bonsai's stool, whose foot no photo shows, stands on the floor instead of hanging in a hole of it
-# (trisplat.mesh.ground)
-GROUND_REACH = 0.5
-
-
-OBJECT_TRUNCATION_VOXELS = 6.0  # the fusion switch's truncation for captures with alpha (TrainConfig.surface_truncation)
-REAL_TRUNCATION_VOXELS = 3.0  # and for real photos
-
-
-def surface_truncation(cfg: TrainConfig, has_alpha: bool) -> float:
-    """The fusion switch's truncation in voxels: cfg.surface_truncation, or its capture-dependent default."""
-    if cfg.surface_truncation is not None:
-        return float(cfg.surface_truncation)
-    return OBJECT_TRUNCATION_VOXELS if has_alpha else REAL_TRUNCATION_VOXELS
-
 
 class TrainingDiverged(RuntimeError):
     """NaN/Inf kept coming back after rolling back with lower learning rates."""
@@ -462,152 +438,8 @@ class Trainer:
                 and not self.far_faces)
 
     def _connect(self) -> None:
-        """The stage-2 switch: the soup becomes one connected surface (cfg.connect_method), then fine-tuning. The
-        soup is kept first as checkpoints/soup.pt (a checkpoint like last.pt: the switch can be redone from it).
-
-        A switch that fails, whatever the error (a MemoryError, a Numba or trimesh error, no surface found), does not
-        end hours of training: the soup is restored, the run goes on as a soup and says why (see _switch_failed).
-        Only KeyboardInterrupt and SystemExit (not Exceptions) pass."""
-        self.sync_cameras()  # the fusion back-projects depth through the cameras
-        soup = checkpoint_state(self.ts, self.step, self.clock.total, self.generator, self._extra())
-        atomic_torch_save(soup, self.run_dir / layout.SOUP_CHECKPOINT)
-        if self.switched_p is None:
-            self.switched_p = self.clock.p(self.step)
-        try:
-            if self.cfg.connect_method == "fusion":
-                self._connect_fusion()
-            else:
-                self._connect_restricted_delaunay()
-        except Exception as exc:  # noqa: BLE001 - any error of the switch: the soup goes on (module docstring)
-            self._switch_failed(exc, soup)
-
-    def _switch_failed(self, exc: BaseException, soup: dict) -> None:
-        """The switch raised `exc`: back to the soup it started from (`soup`, a checkpoint state), marked failed,
-        said on stderr and in the history, and recorded at once in checkpoints/last.pt (the last good state with the
-        failure noted: a resumed run replays the same soup steps and does not try the same switch again; a
-        --resume with another --connect-at tries again there, --resume --output soup finishes as a soup)."""
-        self.ts = restore_trainable(soup, self.device)
-        self.connected, self.far_faces, self.background_faces = False, 0, 0
-        error = f"{type(exc).__name__}: {str(exc).strip() or 'no message'}"
-        self.switch_failed = True
-        self.switch_failure = {"step": self.step, "progress": self.clock.p(self.step),
-                               "connect_at": self.cfg.connect_at, "error": error}
-        msg = (f"the switch to a connected surface at step {self.step} failed ({error}); training goes on with the "
-               f"soup, which the run will end as. To finish otherwise, stop it (Ctrl-C) and continue with "
-               f"`trisplat train DATA --out {self.run_dir} --resume --connect-at P` (P after "
-               f"{self.clock.p(self.step):.2f}: the switch is tried again there) or `--resume --output soup`")
-        self._log({"step": self.step, "switch_failed": msg, "error": error})
-        print(f"warning: {msg}", file=sys.stderr, flush=True)
-        for key in ("switch_failed", "switch_failure", "switched_p"):
-            self._last_good["extra"][key] = getattr(self, key)
-        atomic_torch_save(self._last_good, self.run_dir / layout.CHECKPOINT)
-
-    def _connect_restricted_delaunay(self) -> None:
-        from trisplat.mesh.connect import ConnectConfig, connect_scene
-
-        # layered soups make the restricted Delaunay keep several faces per edge: keep the two best-shaped ones
-        connected, _report = connect_scene(self.ts.to_scene(), ConnectConfig(repair_non_manifold_edges=True))
-        if len(connected.faces) == 0:
-            raise RuntimeError(
-                f"the switch to a connected mesh at step {self.step} produced no faces (from {self.ts.num_faces} "
-                f"soup faces); the last good checkpoint is {self.run_dir / layout.CHECKPOINT}. The soup may be "
-                "too sparse or too transparent at connect_at: try a later --connect-at.")
-        ops.set_faces(self.ts, connected.faces)
-        ops.remove_orphan_vertices(self.ts)
-        self.connected = True
-        self.ts.linear_light = self.cfg.surface_linear_light
-        self._log({"step": self.step, "switch": {"method": "restricted_delaunay", "faces": self.ts.num_faces,
-                                                 "vertices": self.ts.num_vertices}})
-
-    @torch.no_grad()
-    def _connect_fusion(self) -> None:
-        from trisplat.train.switch import (
-            SurfaceConfig,
-            append_scene,
-            cut_pieces_last,
-            far_field_mask,
-            inner_box,
-            soup_to_surface,
-            sub_scene,
-        )
-
-        cfg, p = self.cfg, self.clock.p(self.step)
-        train = [int(i) for i in self.data.train_indices]
-        # voxels finer than about half a pixel of the training images add nothing but time
-        side = max(max(self.data.cameras[i].width, self.data.cameras[i].height) for i in train)
-        # a pixel the soup leaves empty is free space only where the photos have a background (alpha): in a real
-        # photo every pixel sees something, so an empty pixel is a hole in the soup and says nothing (carving along
-        # it could cut through what other views see; issue 26, item 5)
-        masked = self.has_alpha
-        # a real capture's soup is noisier across views than an object's: its unseen shells need more thickness to
-        # stay joined (UNBOUNDED_MAX_DEPTH)
-        max_depth = cfg.surface_max_depth if masked else max(cfg.surface_max_depth, UNBOUNDED_MAX_DEPTH)
-        scfg = SurfaceConfig(resolution=int(min(cfg.surface_resolution, max(2 * side, 32))),
-                             face_ratio=cfg.surface_face_ratio, max_depth_fraction=max_depth,
-                             truncation_voxels=surface_truncation(cfg, masked),
-                             max_faces=cfg.surface_max_faces, opacity=cfg.surface_opacity,
-                             unseen_faces=cfg.surface_unseen_faces, empty_is_free=masked,
-                             retry_truncations=() if masked else UNBOUNDED_RETRY_TRUNCATIONS)
-        say = (lambda m: print(f"switch: {m}", file=sys.stderr, flush=True)) if self.show_progress else None
-        if say:
-            say(f"step {self.step}: fusing the soup's depth in {len(train)} training views into one surface")
-        # an object capture (alpha masks) has its content box. A real capture has none: its walls, floor and
-        # distant content reach far beyond the cameras. By default (far_field 'fused') the whole scene is fused on a
-        # sparse grid over the contracted scene; with far_field 'soup' the surface is fused in the inner box (the
-        # unit cube of the normalised frame, where the cameras are) and the soup beyond it is kept as a far-field
-        # layer behind it
-        soup = self.ts.to_scene().to("cpu")  # (the switch works on the CPU; the surface goes back to the device)
-        contracted = not masked and cfg.far_field == "fused"
-        box = self.data.bounds if masked else inner_box()
-        if contracted:
-            from trisplat.scene.background import background_radius
-
-            # everything inside the background sphere (its radius is beyond 99.9% of the soup's faces) is fused
-            # unseen faces: the back of every wall goes (it faces nothing), the hidden sides that face something seen
-            # and join seen pieces stay (a stool's foot no photo shows, between its seen sides and the floor): the room
-            # and what stands in it stay one piece, and the face budget goes to what the photos see (bonsai: 79% of
-            # the faces seen by a training view, against 67% keeping every unseen group that joins seen pieces)
-            radius = background_radius(soup) / 1.05
-            scfg = dataclasses.replace(scfg, space="contracted", outer_radius=radius, unseen_faces="drop_but_bridges",
-                                       hidden_side_reach=2.0 * radius, ground_reach=GROUND_REACH)
-        surface, report = soup_to_surface(
-            soup, [self.data.cameras[i] for i in train], lambda n: self.render(train[n], p), box, scfg, say,
-            images=lambda n: self.data.load_image(train[n]))
-        self.far_faces = 0
-        if not masked and not contracted:
-            # pieces of the fused surface that reach the inner box's faces apart from the main one are walls and
-            # furniture cut off by the box (bonsai: 5 pieces at x = +-1 and y = 1, 17-32% of the fused faces): far-field content,
-            # kept behind the connected surface with the rest of the far field
-            surface, self.far_faces = cut_pieces_last(surface, box, 2.0 * report.voxel)
-            if self.far_faces:
-                report.faces = surface.num_faces - self.far_faces
-                report.vertices = int(surface.faces[:report.faces].max()) + 1  # the cut pieces' vertices come after
-                report.notes.append(f"{self.far_faces} faces of the surface in pieces cut off by the inner box's "
-                                    "faces moved to the far field")
-        far = far_field_mask(soup, box) if not masked and not contracted else np.zeros(soup.num_faces, bool)
-        if far.any():
-            surface = append_scene(surface, sub_scene(soup, far))
-            report.notes.append(f"{int(far.sum())} soup faces outside the inner box kept as the far field")
-        self.far_faces += int(far.sum())
-        if not masked and cfg.background_sphere:
-            # behind it all, a background sphere coloured from the photos closes the gaps (trisplat.scene.background)
-            from trisplat.scene.background import background_radius, background_sphere
-
-            radius = background_radius(soup)
-            sky = background_sphere(radius, [self.data.cameras[i] for i in train],
-                                    lambda n: self.data.load_image(train[n]), cfg.background, soup.sh_degree,
-                                    surface.opacity_floor)
-            surface = append_scene(surface, sky)
-            self.far_faces += sky.num_faces
-            self.background_faces = sky.num_faces
-            report.notes.append(f"a background sphere of {sky.num_faces} faces at radius {radius:.2f}")
-        ops.replace_scene(self.ts, surface.to(self.device))
-        self.connected = True
-        self.ts.linear_light = self.cfg.surface_linear_light
-        self._log({"step": self.step, "wall_s": round(self.wall_s, 3), "switch": report.to_dict(),
-                   "far_faces": self.far_faces})
-        if say:
-            say(report.summary() + (f"; far-field layer: {self.far_faces} faces" if self.far_faces else ""))
+        """The switch (trisplat.train.connect.connect)."""
+        connect(self)
 
     def _rollback(self) -> None:
         """Back to the last good state with half the learning rates. The scale keeps halving over repeated
@@ -883,85 +715,12 @@ class Trainer:
 
     @torch.no_grad()
     def test_pixels(self) -> tuple[float | None, dict | None]:
-        """test_coverage, and for a real capture's connected surface the test PSNR by layer (trisplat.eval.layers:
-        the piece of the surface that shows the most test pixels, its other pieces, the far-field soup, the
-        background sphere; the opaque mesh at one sample per pixel centre, pooled over the test views), from one
-        render of each test view."""
-        from trisplat.eval.layers import LayerScores, face_layers, layer_labels, main_piece, surface_pieces
-        from trisplat.render import rasterize_hard
-
-        scene, covered, total = self.ts.to_scene(), 0.0, 0.0
-        layered = self.connected and (self.far_faces > 0 or not self.has_alpha)
-        shown = []  # (test view, face ids, render) for the layers
-        for i in self.data.test_indices:
-            cam = self.data.cameras[int(i)]
-            out = rasterize_hard(scene.positions, scene.faces, scene.sh, torch.as_tensor(cam.world_to_camera,
-                                 dtype=torch.float32), torch.as_tensor(cam.K, dtype=torch.float32), cam.width,
-                                 cam.height, self.background, near=self.cfg.near, linear_light=scene.linear_light)
-            hit = (out.alpha > 0.5).cpu().numpy()
-            alpha = self.data.load_alpha(int(i))
-            content = np.ones_like(hit) if alpha is None else np.asarray(alpha) > 0.5
-            covered += float((hit & content).sum())
-            total += float(content.sum())
-            if layered:
-                shown.append((int(i), out.face_id.cpu().numpy().astype(np.int32), out.rgb.clamp(0, 1).cpu().numpy()))
-        by_layer = None
-        if layered and shown:
-            piece = surface_pieces(scene.positions.numpy(), scene.faces.numpy(), scene.num_faces - self.far_faces)
-            of_face = face_layers(scene.num_faces, self.far_faces, self.background_faces, piece,
-                                  main_piece([fid for _, fid, _ in shown], piece) if len(piece) else 0)
-            layers = LayerScores()
-            for i, fid, rgb in shown:
-                layers.add(layer_labels(fid, of_face), rgb, np.asarray(self.data.load_image(i)))
-            by_layer = layers.to_dict()
-        return (covered / total if total else None), by_layer
-
-    def _misfit_warnings(self) -> list[str]:
-        """Training photos whose learned colour correction no camera makes (trisplat.train.exposure.Exposure.misfits):
-        the scene cannot show them, most often because their pose is wrong."""
-        if self.exposure is None:
-            return []
-        found = self.exposure.misfits()
-        if not found:
-            return []
-        names = [f"{self.data.cameras[i].name} (gains {lo:.2f}-{hi:.2f})" for i, lo, hi in found]
-        return [f"{len(found)} training photo(s) do not fit the scene: their colour correction scales a colour by "
-                f"a factor no camera does, so the scene cannot show them (a wrong pose, something moving through, "
-                f"another scene): {', '.join(names[:8])}{' ...' if len(names) > 8 else ''}"]
+        """test_coverage and the scores by layer (trisplat.train.verdict.test_pixels)."""
+        return verdict_test_pixels(self)
 
     def _run_verdict(self, metrics: dict) -> dict:
-        """What the run says about itself (trisplat.train.health.verdict): coverage of the test views, collapses,
-        the final PSNR against the best seen; with a far field, the connected surface's own statistics."""
-        from trisplat.train.health import MAX_FILE_LOSS, add_to_report, verdict
-
-        coverage, by_layer = self.test_pixels()
-        extra = {"coverage": coverage, "switch_s": self.switch_s, "far_field_faces": self.far_faces,
-                 "psnr_by_layer": by_layer,
-                 "surface_pixels": None if by_layer is None else by_layer.get("surface", {}).get("pixels", 0.0),
-                 "background_faces": self.background_faces,
-                 "exposure": None if self.exposure is None else self.exposure.summary(),
-                 "intrinsics": None if self.intrinsics is None else self.intrinsics.summary(),
-                 "history_faces_peak": self.health.peak_faces}
-        if self.far_faces:
-            from trisplat.mesh.stats import mesh_statistics
-            from trisplat.train.switch import sub_scene
-
-            scene = self.ts.to_scene().to("cpu")
-            surface = sub_scene(scene, np.arange(scene.num_faces) < scene.num_faces - self.far_faces)
-            st = mesh_statistics(surface.positions.numpy(), surface.faces.numpy()).to_dict()
-            extra["mesh"] = {**metrics.get("mesh", {}), **{k: st[k] for k in metrics.get("mesh", {}) if k in st},
-                             "of": "the connected surface (without the far-field layer)"}
-            extra["surface_faces"] = surface.num_faces
-        view_independent = None  # measured only when the file is far below the model (see health.verdict)
-        if metrics.get("file_psnr") is not None and metrics.get("psnr") is not None and \
-                metrics["file_psnr"] < metrics["psnr"] - MAX_FILE_LOSS:
-            view_independent = self.evaluate_hard(list(self.data.test_indices), sh_degree=0)
-            extra["psnr_sh_band_0"] = view_independent
-        extra["health"] = verdict(self.health, metrics.get("psnr"), coverage, metrics.get("file_psnr"),
-                                  self._misfit_warnings(), view_independent)
-        if metrics.get("report"):
-            add_to_report(self.run_dir / metrics["report"], extra["health"], by_layer)
-        return extra
+        """What the run says about itself (trisplat.train.verdict.run_verdict)."""
+        return run_verdict(self, metrics)
 
 
 def code_version() -> dict:
