@@ -69,6 +69,31 @@ def test_orientation_repaired_outward():
     assert r.num_flipped == len(s.faces) and np.array_equal(r.faces, s.faces)
 
 
+def test_orientation_by_winding_keeps_a_room_facing_into_itself():
+    """A room seen from inside (a box with its normals into it, as the fusion makes them: towards the free space the
+    cameras looked through), a third of its faces flipped at random: orient_by='winding' repairs it into the room,
+    closed or open (without its ceiling), where the volume rule turns it out of the room, away from every camera.
+    (Bonsai's final surface pass flipped 316k of 387k faces that way: the room faced away from the test views.)"""
+    box = trimesh.creation.box((6.0, 6.0, 2.4))
+    box = trimesh.Trimesh(box.vertices, box.faces, process=False).subdivide().subdivide()
+    inward = box.faces[:, ::-1].copy()
+    centroid = box.triangles_center
+    ceiling = centroid[:, 2] > 1.19
+    rng = np.random.default_rng(0)
+    for faces in (inward, inward[~ceiling]):
+        noisy = faces.copy()
+        flip = rng.random(len(noisy)) < 0.33
+        noisy[flip] = noisy[flip][:, ::-1]
+        r = clean_mesh(box.vertices, noisy, CleanupConfig(orient_by="winding", drop_unreferenced_vertices=False))
+        assert r.num_flipped == flip.sum() and np.array_equal(r.faces, faces)
+        t = box.vertices[r.faces]
+        normals = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+        assert np.all(np.einsum("ij,ij->i", normals, -t.mean(1)) > 0)  # every face towards the room's centre
+        # the volume rule (the default) turns the room out of itself
+        r = clean_mesh(box.vertices, noisy, CleanupConfig(drop_unreferenced_vertices=False))
+        assert np.array_equal(r.faces, faces[:, ::-1])
+
+
 def test_connect_scene_keeps_vertices_and_replaces_faces():
     from trisplat.mesh.connect import ConnectConfig, connect_scene
     from trisplat.scene.model import TriangleScene

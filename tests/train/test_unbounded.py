@@ -73,6 +73,32 @@ def test_default_run_on_a_room_keeps_its_faces_walls_and_psnr(room, tmp_path):
     assert not (run_dir / "exposure.json").exists() and "psnr_exposure_matched" not in m
     _check_scores_by_layer(trainer, m["psnr_by_layer"])
     assert "id='layers'" in (run_dir / m["report"]).read_text()  # and the report shows them
+    # the room faces into itself, towards the cameras (the final surface pass turned it away from them before: 10%
+    # of the surface's test pixels showed a face turned to the camera)
+    assert _front_facing_share(trainer) >= 0.95
+
+
+def _front_facing_share(trainer) -> float:
+    """Share of the connected surface's test pixels (z-buffer) whose face's normal (counter-clockwise winding)
+    points towards the camera."""
+    from trisplat.render import rasterize_hard
+
+    scene = trainer.ts.to_scene()
+    n_surface = scene.num_faces - trainer.far_faces
+    t = scene.positions.numpy().astype(np.float64)[scene.faces.numpy()]
+    normal = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+    front = total = 0
+    for i in trainer.data.test_indices:
+        cam = trainer.data.cameras[int(i)]
+        out = rasterize_hard(scene.positions, scene.faces, scene.sh,
+                             torch.as_tensor(cam.world_to_camera, dtype=torch.float32),
+                             torch.as_tensor(cam.K, dtype=torch.float32), cam.width, cam.height)
+        fid = out.face_id.numpy().reshape(-1)
+        fid = fid[(fid >= 0) & (fid < n_surface)]
+        eye = np.linalg.inv(cam.world_to_camera)[:3, 3]
+        front += int((np.einsum("ij,ij->i", eye - t[fid].mean(1), normal[fid]) > 0).sum())
+        total += len(fid)
+    return front / total
 
 
 def _check_scores_by_layer(trainer, by_layer):

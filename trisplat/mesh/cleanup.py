@@ -6,6 +6,7 @@ Every step keeps index maps so a caller can carry per-vertex attributes (SH, opa
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 import scipy.sparse as sp
@@ -34,7 +35,12 @@ class CleanupConfig:
     """with repair_non_manifold_edges, on a consistently oriented input: of the faces at an over-full edge keep the
     best-shaped one traversing it each way, so the kept faces stay consistently oriented."""
     orient: bool = True
-    """flip faces so neighbours agree (outward on closed pieces)."""
+    """flip faces so neighbours agree, then turn each piece (see orient_by)."""
+    orient_by: Literal["volume", "winding"] = "volume"
+    """'volume': closed pieces outward (positive signed volume), open ones outward about their centroid; 'winding':
+    every piece, closed or open, towards the majority (by area) of its faces' winding as given. A surface fused from
+    depth maps is wound towards the free space the cameras looked through, so its majority is right where the
+    volume rule is not: a room seen from inside faces into the room, its outward side is the one nobody sees."""
     min_component_faces: int = 0
     """drop vertex-connected pieces with fewer faces than this (count); 0 keeps all."""
     min_component_area_fraction: float = 0.0
@@ -188,7 +194,11 @@ def clean_mesh(vertices: np.ndarray, faces: np.ndarray, config: CleanupConfig = 
 
     num_flipped = 0
     if config.orient and len(f):
-        f, orep = orient_faces(v, f)
+        hint = None
+        if config.orient_by == "winding":
+            t = v[f]
+            hint = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+        f, orep = orient_faces(v, f, hint_normals=hint, hint_closed=config.orient_by == "winding")
         f = f.astype(np.int64)
         num_flipped = orep.num_flipped
 

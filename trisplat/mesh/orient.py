@@ -3,7 +3,8 @@
 Faces are walked breadth-first across manifold edges (edges used by exactly two faces); a neighbour is flipped when
 it traverses the shared edge in the same direction as the face it was reached from. Each connected piece is then
 turned as a whole: outward (positive signed volume) when it is closed, otherwise towards the majority of the
-optional hint normals, otherwise outward by signed volume about its centroid.
+optional hint normals, otherwise outward by signed volume about its centroid. With `hint_closed`, the hints turn
+closed pieces too (a room closed around the cameras faces into itself: its outward side is the one nobody sees).
 """
 from __future__ import annotations
 
@@ -130,12 +131,12 @@ class OrientReport:
     num_conflicting_edges: int
 
 
-def orient_faces(vertices: np.ndarray, faces: np.ndarray, hint_normals: np.ndarray | None = None
-                 ) -> tuple[np.ndarray, OrientReport]:
+def orient_faces(vertices: np.ndarray, faces: np.ndarray, hint_normals: np.ndarray | None = None,
+                 hint_closed: bool = False) -> tuple[np.ndarray, OrientReport]:
     """Consistently oriented copy of `faces` [F,3] (int32), and a report.
 
     vertices: [V,3]. hint_normals: optional [F,3] preferred normal direction per face (need not be unit; zero rows
-    abstain), used to turn open pieces.
+    abstain), used to turn open pieces, and closed ones too with hint_closed (each face's vote weighs its area).
     """
     vertices = np.asarray(vertices, dtype=np.float64)
     faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
@@ -165,8 +166,9 @@ def orient_faces(vertices: np.ndarray, faces: np.ndarray, hint_normals: np.ndarr
     turn = volume < 0
     if hint_normals is not None:
         hint = np.asarray(hint_normals, dtype=np.float64).reshape(F, 3)
-        vote = np.bincount(comp, weights=sign * np.sign(np.einsum("ij,ij->i", hint, cross)), minlength=n_comp)
-        use_hint = ~piece_closed & (vote != 0)
+        area = np.linalg.norm(cross, axis=1)
+        vote = np.bincount(comp, weights=sign * area * np.sign(np.einsum("ij,ij->i", hint, cross)), minlength=n_comp)
+        use_hint = (vote != 0) if hint_closed else ~piece_closed & (vote != 0)
         turn = np.where(use_hint, vote < 0, turn)
     flip ^= turn[comp]
     out = faces.copy()

@@ -412,13 +412,13 @@ def run_poses(source: str | Path, out: str | Path, options: PosesOptions | None 
         raise ValueError(f"{source}: expected a folder of photos or a video file ({', '.join(VIDEO_SUFFIXES)})")
     if not video:  # photos are checked before anything is written
         _check_out(out, source, opts.force)
-        t_check = time.perf_counter()
+        t_check, cpu_check = time.perf_counter(), time.process_time()
         files = find_images(source)
         if not files:
             raise ValueError(f"{source}: no image files ({', '.join(IMAGE_SUFFIXES)}) directly in this folder "
                              f"(subfolders are not searched)")
         check = check_images(files, same_size=opts.camera_mode == "single", where=str(source))
-        t_check = time.perf_counter() - t_check
+        t_check, cpu_check = time.perf_counter() - t_check, time.process_time() - cpu_check
     _prepare_out(out, source, opts.force)
     work = out / WORK
     work.mkdir()
@@ -429,11 +429,19 @@ def run_poses(source: str | Path, out: str | Path, options: PosesOptions | None 
     n_stages = 6 if video else 5
     k = 0
 
+    cpu: dict[str, float] = {}  # CPU seconds of the whole process (all its threads) per stage
+    cpu_at = time.process_time()
+
     def head(title: str) -> float:
-        nonlocal k
+        nonlocal k, cpu_at
         k += 1
         say(f"[{k}/{n_stages}] {title}")
+        cpu_at = time.process_time()
         return time.perf_counter()
+
+    def done(name: str, t: float) -> None:
+        times[name] = time.perf_counter() - t
+        cpu[name] = time.process_time() - cpu_at
 
     with _quiet_colmap(opts.verbose):
         if video:
@@ -447,17 +455,18 @@ def run_poses(source: str | Path, out: str | Path, options: PosesOptions | None 
             video_info = {"fps": sel.fps, "rate": sel.rate, "frames_read": sel.frames_read,
                           "frames_kept": len(sel.files), "frame_indices": sel.frame_indices}
             say(f"      kept {len(files)} of {sel.frames_read} frames ({sel.rate:.3g} per second of video)")
-            times[stage] = time.perf_counter() - t
+            done(stage, t)
             t = head(f"checking {len(files)} frames")
             check = check_images(files, same_size=True, where=str(source))
         else:
             image_dir = source
             t = head(f"checked {len(files)} images") - t_check
+            cpu_at -= cpu_check
         for w in check.warnings:
             say(f"      warning: {w}")
         warnings += check.warnings
         names = [p.name for p in check.images]
-        times["input"] = time.perf_counter() - t
+        done("input", t)
 
         first_model = AUTO_FIRST if opts.camera_model == "auto" else opts.camera_model
         t = head(f"SIFT features ({first_model}, {opts.camera_mode} camera)")
@@ -465,7 +474,7 @@ def run_poses(source: str | Path, out: str | Path, options: PosesOptions | None 
         feats = _extract(db, image_dir, names, opts, progress)
         say("      focal: " + ("from EXIF" if feats["exif"] else
                                 "no EXIF focal length; starting from 1.2 x the longest side, refined by bundle adjustment"))
-        times["features"] = time.perf_counter() - t
+        done("features", t)
 
         matcher = opts.matcher
         if matcher == "auto":
@@ -483,7 +492,7 @@ def run_poses(source: str | Path, out: str | Path, options: PosesOptions | None 
         id_to_name = {i: n for n, i in feats["ids"].items()}
         n_verified, per_image = _verified(db, id_to_name)
         say(f"      {n_verified} of {len(pairs)} pairs verified")
-        times["matching"] = time.perf_counter() - t
+        done("matching", t)
 
         needed = max(MIN_IMAGES, math.ceil(opts.min_registered * len(names)))
         t = head(f"{opts.mapper} mapping")
@@ -509,7 +518,7 @@ def run_poses(source: str | Path, out: str | Path, options: PosesOptions | None 
         if opts.mapper == "global":
             models = map_again(models, "the global mapper", "the incremental mapper",
                                lambda: _map(db, image_dir, work, len(names), opts.seed, progress, "incremental"))
-        times["mapping"] = time.perf_counter() - t
+        done("mapping", t)
         if not models:
             raise _failure(0, names, set(), feats["features"], per_image, needed, source, work)
         best = max(models, key=lambda r: (r.num_reg_images(), r.num_points3D()))
@@ -520,7 +529,7 @@ def run_poses(source: str | Path, out: str | Path, options: PosesOptions | None 
                             f"({len(registered)} images); left out, in smaller models: {name_list(sorted(elsewhere))}")
         t = time.perf_counter()
         best, repair = repair_registration(db, image_dir, best, work, seed=opts.seed)
-        times["registration check"] = time.perf_counter() - t
+        done("registration check", t)
         if repair.flagged:
             note = (f"{len(repair.flagged)} image(s) were registered where their own matches disagree (a mirror "
                     f"position on repeated or symmetric content): {name_list(repair.flagged)}; "
@@ -546,9 +555,11 @@ def run_poses(source: str | Path, out: str | Path, options: PosesOptions | None 
             _undistort(model_dir, image_dir, reg_names, out, progress)
         else:
             _copy_distorted(model_dir, image_dir, reg_names, out)
-        times["undistortion"] = time.perf_counter() - t
+        done("undistortion", t)
+    # how many cores each stage kept busy (CPU time of all threads / wall time): COLMAP's stages use every core
     say(f"      {sum(times.values()) / 60:.1f} min on {os.cpu_count()} cores: "
-        + ", ".join(f"{name} {sec:.0f} s" for name, sec in times.items() if sec >= 0.5))
+        + ", ".join(f"{name} {sec:.0f} s ({cpu[name] / sec:.1f} cores busy)" for name, sec in times.items()
+                    if sec >= 0.5))
 
     cam = next(iter(best.cameras.values()))
     report = PosesReport(

@@ -1,5 +1,7 @@
 """The final surface pass of a connected run: drop degenerate and duplicate faces and small detached pieces, and
-orient every piece consistently (outward where closed). Never welds or moves a vertex, so the render of what stays
+orient every piece consistently, each as the majority of its faces already faces (the fusion's surface faces the
+free space the cameras looked through; the restricted Delaunay surface was turned towards the soup's normals: turning
+pieces outward instead flipped bonsai's room, seen from inside, to face away from every camera). Never welds or moves a vertex, so the render of what stays
 is unchanged; the trainer measures what the removed pieces cost in PSNR."""
 from __future__ import annotations
 
@@ -39,7 +41,7 @@ def final_surface_pass(ts: ops.TrainableScene, min_piece_fraction: float = MIN_P
     small = sizes < min_piece_fraction * sizes.max()
     kept = faces[~small[label]]
     res = clean_mesh(pos, kept, CleanupConfig(weld=False, min_face_area=0.0, drop_duplicate_faces=True, orient=True,
-                                              drop_unreferenced_vertices=False))
+                                              orient_by="winding", drop_unreferenced_vertices=False))
     # weld=False and drop_unreferenced_vertices=False: the vertex table (and its indices) is unchanged
     assert len(res.vertex_source) == len(pos)
     ops.set_faces(ts, torch.as_tensor(np.concatenate([np.asarray(res.faces, np.int64).reshape(-1, 3),

@@ -67,6 +67,7 @@ def connect(tr) -> None:
     except Exception as exc:  # noqa: BLE001 - any error of the switch: the soup goes on (module docstring)
         switch_failed(tr, exc, soup)
 
+
 def switch_failed(tr, exc: BaseException, soup: dict) -> None:
     """The switch raised `exc`: back to the soup it started from (`soup`, a checkpoint state), marked failed,
     said on stderr and in the history, and recorded at once in checkpoints/last.pt (the last good state with the
@@ -77,7 +78,7 @@ def switch_failed(tr, exc: BaseException, soup: dict) -> None:
     error = f"{type(exc).__name__}: {str(exc).strip() or 'no message'}"
     tr.switch_failed = True
     tr.switch_failure = {"step": tr.step, "progress": tr.clock.p(tr.step),
-                           "connect_at": tr.cfg.connect_at, "error": error}
+                         "connect_at": tr.cfg.connect_at, "error": error}
     msg = (f"the switch to a connected surface at step {tr.step} failed ({error}); training goes on with the "
            f"soup, which the run will end as. To finish otherwise, stop it (Ctrl-C) and continue with "
            f"`trisplat train DATA --out {tr.run_dir} --resume --connect-at P` (P after "
