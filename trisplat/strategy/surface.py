@@ -1,8 +1,8 @@
 """The final surface pass of a connected run: drop degenerate and duplicate faces and small detached pieces, and
 orient every piece consistently, each as the majority of its faces already faces (the fusion's surface faces the
 free space the cameras looked through; the restricted Delaunay surface was turned towards the soup's normals: turning
-pieces outward instead flipped bonsai's room, seen from inside, to face away from every camera). Never welds or moves a vertex, so the render of what stays
-is unchanged; the trainer measures what the removed pieces cost in PSNR."""
+pieces outward instead flipped bonsai's room, seen from inside, to face away from every camera). Never welds or moves
+a vertex, so the render of what stays is unchanged; the trainer measures what the removed pieces cost in PSNR."""
 from __future__ import annotations
 
 from dataclasses import dataclass
