@@ -4,6 +4,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
 import sys
 import time
 from dataclasses import dataclass, field
@@ -76,6 +77,18 @@ def view_for_step(step: int, train_indices: np.ndarray, seed: int) -> int:
     n = len(train_indices)
     epoch, k = divmod(step, n)
     return int(np.random.default_rng([seed, epoch]).permutation(train_indices)[k])
+
+
+def threads_line() -> str:
+    """What the step runs on: numba's threads and threading layer (chosen by numba: TBB where libtbb is installed,
+    else OpenMP, else its workqueue), torch's threads, the machine's cores."""
+    import numba
+
+    from trisplat.bench.common import threading_layer
+
+    return (f"threads: {numba.get_num_threads()} for the kernels (numba, {threading_layer()} threading layer), "
+            f"{torch.get_num_threads()} for torch, on {os.cpu_count()} cores (`trisplat bench step RUN`: what each "
+            "core adds)")
 
 
 class Trainer:
@@ -553,6 +566,8 @@ class Trainer:
         if self.show_progress:
             print("preparing the renderer (compiles once, then cached) ...", file=sys.stderr, flush=True)
         self.warm_up_kernels()
+        if self.show_progress:
+            print(threads_line(), file=sys.stderr, flush=True)
         # --minutes: plan the step count after a short warm-up, then re-plan every few steps as the scene grows and
         # shrinks. Frequent re-plans keep progress close to linear in wall time: with a few re-plans, a step rate
         # that changed since the last one squeezed the rest of the schedule (measured: the whole hardening,
