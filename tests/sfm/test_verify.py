@@ -62,9 +62,10 @@ def test_a_photo_whose_strongest_pairs_agree_is_not_flagged_for_its_matches_acro
     assert flag_images(mirror).flagged == ["B"]
 
 
-def _moved_model(capture, name):
-    """The capture's model with image `name` turned half-way round the scene's centre (a mirror-like position)."""
-    model = pycolmap.Reconstruction(str(capture / "distorted" / "sparse" / "0"))
+def _moved_model(capture, name, model=None):
+    """The capture's model (or `model`) with image `name` turned half-way round the scene's centre (a mirror-like
+    position)."""
+    model = model or pycolmap.Reconstruction(str(capture / "distorted" / "sparse" / "0"))
     centres = np.array([model.images[i].projection_center() for i in model.reg_image_ids()])
     pivot = np.mean([p.xyz for p in model.points3D.values()], axis=0)
     im = next(model.images[i] for i in model.reg_image_ids() if model.images[i].name == name)
@@ -78,6 +79,20 @@ def _moved_model(capture, name):
     t_new = T[:, 3] + T[:, :3] @ pivot - R_new @ pivot
     model.frames[im.frame_id].rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(R_new), t_new)
     return model, im.image_id
+
+
+def test_consecutive_photos_moved_together_are_all_flagged(synthetic_capture):
+    """Three neighbours in the sequence at the same mirror position agree with one another (their pairs are among
+    their strongest), yet each one's strongest pairs disagree enough (at most 0.73 agreeing, below STRONG_AGREE) to
+    keep them suspects: all three are flagged."""
+    report, capture = synthetic_capture
+    db = capture / "distorted" / "database.db"
+    names = sorted(report.registered)
+    group = names[len(names) // 2: len(names) // 2 + 3]
+    model = None
+    for name in group:
+        model, _ = _moved_model(capture, name, model)
+    assert sorted(check_registration(db, model).flagged) == group
 
 
 def test_a_photo_moved_to_a_wrong_pose_is_flagged_and_registered_again(synthetic_frames, synthetic_capture,
