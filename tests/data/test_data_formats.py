@@ -85,7 +85,7 @@ def test_lego_background_compositing(cache):
     white = load_dataset(root, cache_dir=cache)
     black = load_dataset(root, cache_dir=cache, background=(0.0, 0.0, 0.0))
     assert white.options["background"] == [1.0, 1.0, 1.0] and black.background == (0.0, 0.0, 0.0)
-    assert white.cameras[0].image_path == root / "train" / "r_0.png"  # nothing changed: the original file
+    assert white.cameras[0].image_path.resolve() == (root / "train" / "r_0.png").resolve()  # the original file
     src = np.asarray(Image.open(root / "train" / "r_0.png")).astype(np.float32) / 255
     a = src[..., 3:]
     np.testing.assert_allclose(white.load_image(0), src[..., :3] * a + (1 - a), atol=1e-6)
