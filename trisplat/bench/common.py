@@ -27,13 +27,8 @@ def machine_info() -> dict:
                 break
     except OSError:
         pass
-    try:
-        commit = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=Path(__file__).parent
-        ).stdout.strip()
-    except OSError:
-        commit = ""
-    return {**_more_machine_info(), **{
+    code = code_version()
+    return {**_more_machine_info(code), **{
         "cpu": cpu,
         "cores": os.cpu_count(),
         "numba_threads": numba.get_num_threads(),
@@ -43,7 +38,7 @@ def machine_info() -> dict:
         "torch": torch.__version__,
         "numba": numba.__version__,
         "numpy": numpy.__version__,
-        "commit": commit or "unknown",
+        "commit": code["commit"] or "unknown",
         "date": time.strftime("%Y-%m-%d %H:%M"),
     }}
 
@@ -59,10 +54,30 @@ def threading_layer() -> str:
         return f"not chosen yet (configured: {numba.config.THREADING_LAYER})"
 
 
-def _more_machine_info() -> dict:
-    """OS, total memory (GiB), trisplat's version and whether tracked files differ from the commit."""
+def code_version() -> dict:
+    """{"trisplat": version (or None when not installed), "commit": the git commit of the source tree (or None
+    outside a checkout), "dirty": whether tracked files differ from it (or None)}. Runs record it in metrics.json."""
     from importlib import metadata
 
+    here = Path(__file__).resolve().parent
+    try:
+        version = metadata.version("trisplat")
+    except metadata.PackageNotFoundError:
+        version = None
+    try:
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=here,
+                                timeout=10).stdout.strip() or None
+        status = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True,
+                                text=True, cwd=here, timeout=10)
+        dirty = bool(status.stdout.strip()) if commit and status.returncode == 0 else None
+    except (OSError, subprocess.SubprocessError):
+        commit, dirty = None, None
+    return {"trisplat": version, "commit": commit, "dirty": dirty}
+
+
+def _more_machine_info(code: dict) -> dict:
+    """OS, total memory (GiB), trisplat's version and whether tracked files differ from the commit (`code`:
+    code_version())."""
     mem_gib = None
     try:
         for line in Path("/proc/meminfo").read_text().splitlines():
@@ -71,17 +86,8 @@ def _more_machine_info() -> dict:
                 break
     except (OSError, ValueError):
         pass
-    try:
-        version = metadata.version("trisplat")
-    except metadata.PackageNotFoundError:
-        version = "unknown"
-    try:
-        status = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True,
-                                text=True, cwd=Path(__file__).parent)  # fmt: skip
-        dirty = bool(status.stdout.strip()) if status.returncode == 0 else None
-    except OSError:
-        dirty = None
-    return {"os": platform.platform(), "memory_gib": mem_gib, "trisplat": version, "commit_dirty": dirty}
+    return {"os": platform.platform(), "memory_gib": mem_gib, "trisplat": code["trisplat"] or "unknown",
+            "commit_dirty": code["dirty"]}
 
 
 def median_ms(fn: Callable[[], object], repeats: int = 5, warmup: int = 1) -> float:

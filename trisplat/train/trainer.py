@@ -714,6 +714,8 @@ class Trainer:
         metrics = write_outputs(self, pruned)
         metrics["connect_at"] = self.cfg.connect_at
         metrics["switch_failure"] = self.switch_failure if self.switch_failed else None
+        from trisplat.bench.common import code_version
+
         metrics["code"] = code_version()  # the commit the run was trained with (results pages cite it)
         metrics.update(self._run_verdict(metrics))
         atomic_write_text(self.run_dir / layout.METRICS, json.dumps(metrics, indent=2))
@@ -736,28 +738,6 @@ class Trainer:
     def _run_verdict(self, metrics: dict) -> dict:
         """What the run says about itself (trisplat.train.verdict.run_verdict)."""
         return run_verdict(self, metrics)
-
-
-def code_version() -> dict:
-    """{"trisplat": version, "commit": the git commit of the source tree (or None outside a checkout), "dirty":
-    whether tracked files differ from it (or None)}."""
-    import subprocess
-    from importlib import metadata
-
-    here = Path(__file__).resolve().parent
-    try:
-        version = metadata.version("trisplat")
-    except metadata.PackageNotFoundError:
-        version = None
-    try:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=here,
-                                timeout=10).stdout.strip() or None
-        status = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True,
-                                text=True, cwd=here, timeout=10)
-        dirty = bool(status.stdout.strip()) if commit and status.returncode == 0 else None
-    except (OSError, subprocess.SubprocessError):
-        commit, dirty = None, None
-    return {"trisplat": version, "commit": commit, "dirty": dirty}
 
 
 def _all_finite(t: torch.Tensor) -> bool:
