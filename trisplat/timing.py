@@ -10,6 +10,7 @@ import time
 from contextlib import contextmanager
 
 _TIMES: dict[str, float] | None = None
+_CLOCK = time.perf_counter
 
 
 class stage:
@@ -22,21 +23,23 @@ class stage:
 
     def __enter__(self):
         if _TIMES is not None:
-            self.t0 = time.perf_counter()
+            self.t0 = _CLOCK()
         return self
 
     def __exit__(self, *exc):
         if _TIMES is not None:
-            _TIMES[self.name] = _TIMES.get(self.name, 0.0) + time.perf_counter() - self.t0
+            _TIMES[self.name] = _TIMES.get(self.name, 0.0) + _CLOCK() - self.t0
         return False
 
 
 @contextmanager
-def recording():
-    """Record the stages inside the block; yields the dict of seconds per stage name (filled as it goes)."""
-    global _TIMES
-    outer, _TIMES = _TIMES, {}
+def recording(clock=time.perf_counter):
+    """Record the stages inside the block; yields the dict of seconds per stage name (filled as it goes). clock:
+    wall time by default; time.thread_time gives the CPU time of the calling thread, which at one thread (numba's
+    and torch's work run in it) is the stage's work, less stretched by other jobs on a shared machine."""
+    global _TIMES, _CLOCK
+    outer, outer_clock, _TIMES, _CLOCK = _TIMES, _CLOCK, {}, clock
     try:
         yield _TIMES
     finally:
-        _TIMES = outer
+        _TIMES, _CLOCK = outer, outer_clock

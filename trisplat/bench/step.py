@@ -10,6 +10,12 @@ per-face statistics, loading the photo, and what is left (Python between them). 
 speed-up is the 1-thread step time over the N-thread one; the serial fraction is Amdahl's, s = (N / speed-up - 1) /
 (N - 1): the share of the 1-thread step that more threads do not shorten. The pruning and densification events of
 the soup (every few hundred steps) are not part of a step. Writes step.json and step.md.
+
+Beside the wall time, each row gives the CPU time of all the process's threads per step, and the load average is
+printed and kept: other jobs on a shared machine stretch the wall times (a 2-thread row among them says little).
+`--clock cpu` times the step and its stages in CPU time of the thread that runs it (time.thread_time): at 1 thread
+(numba's and torch's work then run in that thread) that is the stage's work, which compares two versions of the
+code on a busy machine better than wall time does.
 """
 from __future__ import annotations
 
@@ -58,6 +64,10 @@ class StepArgs:
     """'soup' (checkpoints/soup.pt) and/or 'surface' (checkpoints/last.pt)"""
     out: Path = Path("bench_results")
     """folder for step.json and step.md"""
+    clock: str = "wall"
+    """'wall', or 'cpu': the step and its stages in CPU time of the thread that runs the step (time.thread_time), for
+    comparing 1-thread runs on a shared machine (at more threads it leaves out the other threads' work: no speed-up
+    or serial fraction then)"""
 
 
 def _trainer(run_dir: Path, checkpoint: Path, tmp: Path):
@@ -79,24 +89,28 @@ def _trainer(run_dir: Path, checkpoint: Path, tmp: Path):
                    data_path=run.config["data"])
 
 
-def time_steps(trainer, steps: int, warmup: int) -> tuple[float, dict[str, float]]:
-    """Median seconds of a whole step and of each stage (seconds; a stage a step did not run counts 0)."""
+def time_steps(trainer, steps: int, warmup: int, clock=time.perf_counter) -> tuple[float, dict[str, float]]:
+    """Median seconds of a whole step and of each stage (seconds; a stage a step did not run counts 0), and under
+    "cpu" the median CPU seconds of the process's threads per step (at 1 thread the step's work, which other jobs on
+    a shared machine stretch less than its wall time)."""
     from trisplat.timing import recording
 
-    totals, per = [], []
+    totals, cpus, per = [], [], []
     for k in range(warmup + steps):
-        with recording() as rec:
-            t0 = time.perf_counter()
+        with recording(clock) as rec:
+            t0, c0 = clock(), time.process_time()
             res = trainer.train_step()
-            dt = time.perf_counter() - t0
+            dt, dc = clock() - t0, time.process_time() - c0
         if not res["ok"]:
             raise RuntimeError(f"step {trainer.step} of the benchmark failed (NaN/Inf)")
         trainer.step += 1
         if k >= warmup:
             totals.append(dt)
+            cpus.append(dc)
             per.append(dict(rec))
     names = {n for d in per for n in d}
-    return statistics.median(totals), {n: statistics.median(d.get(n, 0.0) for d in per) for n in names}
+    return statistics.median(totals), {n: statistics.median(d.get(n, 0.0) for d in per) for n in names} | {
+        "cpu": statistics.median(cpus)}
 
 
 def serial_fraction(speedup: float, threads: int) -> float | None:
@@ -112,13 +126,16 @@ def main(argv: list[str]) -> int:
     import torch
 
     threads = args.threads or list(range(1, (os.cpu_count() or 1) + 1))
+    if args.clock not in ("wall", "cpu"):
+        raise SystemExit(f"trisplat bench step: --clock {args.clock!r}: 'wall' or 'cpu'")
+    clock = time.thread_time if args.clock == "cpu" else time.perf_counter
     files = {"soup": args.run / "checkpoints" / "soup.pt", "surface": args.run / "checkpoints" / "last.pt"}
     for ph in args.phases:
         if ph not in files:
             raise SystemExit(f"trisplat bench step: unknown phase {ph!r} (known: soup, surface)")
         if not files[ph].is_file():
             raise SystemExit(f"trisplat bench step: {files[ph]} not found (the {ph} phase needs it)")
-    cols = ["phase", "faces", "pixels", "threads", "step ms", "speed-up", "serial fraction"]
+    cols = ["phase", "faces", "pixels", "threads", "step ms", "step CPU ms", "speed-up", "serial fraction"]
     cols += [f"{c} ms" for c, _ in STAGES] + ["autograd rest ms", "Python rest ms"]
     table = BenchTable("step", cols)
     for ph in args.phases:
@@ -132,7 +149,7 @@ def main(argv: list[str]) -> int:
                 numba.set_num_threads(min(t, numba.config.NUMBA_NUM_THREADS))
                 torch.set_num_threads(t)
                 trainer.step = start  # the same views at every thread count
-                total, st = time_steps(trainer, args.steps, args.warmup)
+                total, st = time_steps(trainer, args.steps, args.warmup, clock)
                 base = total if base is None else base
                 speed = base / total
                 staged = [1e3 * sum(st.get(n, 0.0) for n in names) for _, names in STAGES]
@@ -140,15 +157,22 @@ def main(argv: list[str]) -> int:
                 autograd_rest = 1e3 * max(st.get("backward", 0.0) - inner, 0.0)
                 python_rest = 1e3 * total - sum(staged) - autograd_rest
                 sf = serial_fraction(speed, t) if t == threads[-1] and threads[0] == 1 else None
-                table.add(ph, trainer.ts.num_faces, cam.width * cam.height, t, round(1e3 * total, 1), round(speed, 3),
+                if args.clock == "cpu" and t > 1:
+                    speed, sf = float("nan"), None  # (the other threads' work is not in this thread's clock)
+                table.add(ph, trainer.ts.num_faces, cam.width * cam.height, t, round(1e3 * total, 1),
+                          round(1e3 * st["cpu"], 1), round(speed, 3),
                           None if sf is None else round(sf, 3), *[round(x, 1) for x in staged],
                           round(autograd_rest, 1), round(python_rest, 1))
-                print(f"{ph}: {t} thread(s): {1e3 * total:.0f} ms/step (x{speed:.2f})", flush=True)
+                print(f"{ph}: {t} thread(s): {1e3 * total:.0f} ms/step (x{speed:.2f}; CPU {1e3 * st['cpu']:.0f} ms; "
+                      f"load average {os.getloadavg()[0]:.2f})", flush=True)
     layer = numba.threading_layer()
+    if args.clock == "cpu":
+        table.notes.append("--clock cpu: times are CPU time of the thread running the step (time.thread_time)")
     table.notes.append(f"numba threading layer: {layer}; OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY', 'unset')};"
                        f" {args.steps} timed steps after {args.warmup} untimed, medians; serial fraction (Amdahl) "
                        f"from the first and last thread counts when the first is 1")
     table.started["numba_threading_layer"] = layer
+    table.started["load_average_end"] = list(os.getloadavg())  # other jobs on the machine stretch the wall times
     md = table.write(args.out, "trisplat bench step " + " ".join(argv))
     print(md.read_text())
     return 0
