@@ -34,7 +34,7 @@ def test_bench_slam_reports_both_methods(rgbd_capture, tmp_path):
     data = json.loads((out / "slam.json").read_text())
     assert data["columns"] == COLUMNS and "commit" in data["machine"] and "cores" in data["machine"]
     rows = {r[0]: dict(zip(COLUMNS, r)) for r in data["rows"]}
-    assert set(rows) == {"trisplat", "open3d"}
+    assert set(rows) == {"trisplat", "open3d", "open3d-slam"}
     for name, r in rows.items():
         assert r["frames"] == N and r["resolution"] == f"{W}x{H}"
         assert r["ATE RMSE m"] is not None and 0 <= r["ATE RMSE m"] < 0.1, (name, r)  # a 0.2 m path
@@ -45,7 +45,7 @@ def test_bench_slam_reports_both_methods(rgbd_capture, tmp_path):
         assert r["load before"] is not None
     assert rows["trisplat"]["ATE RMSE m"] < 0.03  # ~1 cm: the noiseless sequence at 80x60
     assert rows["trisplat"]["held-out PSNR"] is not None and rows["trisplat"]["held-out depth L1 m"] < 0.05
-    assert rows["open3d"]["held-out PSNR"] is None
+    assert rows["open3d"]["held-out PSNR"] is None and rows["open3d-slam"]["held-out PSNR"] is None
     # both meshes scored as a viewer shows them at trisplat's held-out frames (the synthetic background is white and
     # what the meshes leave empty renders black, so the PSNRs are low); the same mesh at poses moved 30 cm scores
     # lower: the score sees the mesh where the photos are
@@ -68,6 +68,7 @@ def test_bench_slam_reports_both_methods(rgbd_capture, tmp_path):
     write_tum_trajectory(moved / "trajectory.txt", stamps, est)
     assert mesh_psnr(moved, stream, list(range(N)), frames, DOWNSCALE)["psnr"] < good["psnr"] - 0.5
     assert rows["open3d"]["held-out PSNR of mesh.ply"] is not None
+    assert rows["open3d-slam"]["held-out PSNR of mesh.ply"] is not None
     # the file as it is, scored by the bench, is what the run scored without its exposures (8-bit colours in the file)
     saved = json.loads((run / "metrics.json").read_text())
     assert saved["held_out_mesh"]["psnr_without_exposure"] == pytest.approx(good["psnr"], abs=0.05)
@@ -86,6 +87,35 @@ def test_bench_slam_reports_both_methods(rgbd_capture, tmp_path):
     details = json.loads((out / "slam_details.json").read_text())
     assert details["reference_tsdf_mesh"]["faces"] > 0 and details["trisplat_slam_extra_args"] == SLAM_EXTRA[1:]
     assert (out / "slam_trisplat" / "trajectory.txt").is_file() and (out / "slam_open3d" / "mesh.ply").is_file()
+    assert (out / "slam_open3d-slam" / "mesh.ply").is_file() and "| open3d-slam |" in md
+
+
+def test_bench_slam_scores_a_later_stretch(rgbd_capture, tmp_path):
+    """--start: every method runs on the same later stretch (capture frames 6 to 11), scored against those frames'
+    reference poses; an unknown method or a start outside the capture is refused before anything runs."""
+    pytest.importorskip("open3d", reason="the SLAM benchmark's baselines need open3d: pip install open3d-cpu")
+    from trisplat.bench.slam import main
+    from trisplat.slam.trajectory import read_tum_trajectory
+
+    out = tmp_path / "bench"
+    rc = main(["--capture", str(rgbd_capture), "--out", str(out), "--downscale", str(DOWNSCALE), "--start", "6",
+               "--max-frames", "6", "--chamfer-samples", "2000", "--tsdf-voxel", "0.02", "--methods", "open3d",
+               "open3d-slam", "--open3d-slam-downscale", "1"])
+    assert rc == 0
+    data = json.loads((out / "slam.json").read_text())
+    rows = {r[0]: dict(zip(data["columns"], r)) for r in data["rows"]}
+    assert set(rows) == {"open3d", "open3d-slam"}
+    assert rows["open3d-slam"]["resolution"] == f"{FULL_W}x{FULL_H}" and rows["open3d"]["resolution"] == f"{W}x{H}"
+    for name in rows:
+        stamps, _ = read_tum_trajectory(out / f"slam_{name}" / "trajectory.txt")
+        assert stamps.tolist() == [6.0, 7.0, 8.0, 9.0, 10.0, 11.0]  # 7-Scenes has no timestamps: capture frame numbers
+        assert rows[name]["ATE RMSE m"] < 0.03, rows[name]
+    details = json.loads((out / "slam_details.json").read_text())
+    assert details["start"] == 6 and details["frames"] == 6 and "capture frames 6 to 11" in data["notes"][0]
+    with pytest.raises(ValueError, match="start frame 14 is outside the capture's 14 frames"):
+        main(["--capture", str(rgbd_capture), "--out", str(tmp_path / "b2"), "--start", "14", "--methods", "open3d"])
+    with pytest.raises(ValueError, match="--methods: \\['orb'\\]"):
+        main(["--capture", str(rgbd_capture), "--out", str(tmp_path / "b3"), "--methods", "orb"])
 
 
 def test_bench_slam_without_open3d_names_the_package(rgbd_capture, tmp_path, monkeypatch, capsys):

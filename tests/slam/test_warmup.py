@@ -29,6 +29,13 @@ def test_warm_up_runs_every_stage_of_a_slam_run(monkeypatch, tmp_path):
     assert stages.count("track_with_relocalisation") == warmup.FRAMES - 1  # every frame after the first tracked
 
 
+def test_warm_up_ignores_the_runs_start_frame():
+    """--slam.start names a frame of the user's capture, not of the warm-up's 8 frames: the warm-up starts at 0."""
+    said: list[str] = []
+    warmup.warm_up(SlamConfig(start=200, max_frames=50), log=lambda *a, **k: said.append(" ".join(map(str, a))))
+    assert not said, said
+
+
 def test_warm_up_capture_is_a_valid_capture_with_poses(tmp_path):
     root = warmup.write_capture(tmp_path / "cap")
     s = open_stream(root)

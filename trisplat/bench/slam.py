@@ -1,9 +1,12 @@
-"""`trisplat bench slam`: `trisplat slam` beside the Open3D baseline (RGB-D odometry + TSDF) on the same frames.
+"""`trisplat bench slam`: `trisplat slam` beside two Open3D pipelines on the same frames: RGB-D odometry + TSDF, and
+Open3D's dense SLAM (frame-to-model tracking on a voxel block grid).
 
-Both methods run on the same frames of one RGB-D capture (every --stride-th, the first --max-frames, at
+All methods run on the same frames of one RGB-D capture (every --stride-th from --start, the first --max-frames, at
 1/--downscale): `trisplat slam` through its Python entry (trisplat.commands.slam.main, options after `--` are passed
-to it verbatim, e.g. `-- --slam.final-iters 50`), then trisplat.slam.open3d_baseline (frame-to-frame hybrid RGB-D
-odometry chained into a trajectory, TSDF fusion into a mesh). Reported per method: ATE RMSE / max (camera centres,
+to it verbatim, e.g. `-- --slam.final-iters 50`), then trisplat.slam.open3d_baseline (`open3d`: frame-to-frame hybrid
+RGB-D odometry chained into a trajectory, TSDF fusion into a mesh), then trisplat.slam.open3d_dense_slam
+(`open3d-slam`: open3d.t.pipelines.slam at its dense-SLAM example's defaults; --open3d-slam-downscale runs it at
+another resolution, e.g. 1 for the full frames the example reads). Reported per method: ATE RMSE / max (camera centres,
 rigid SE(3) alignment onto the reference poses, no scale), wall time of the whole method (loading, tracking,
 mapping, meshing, trisplat's held-out evaluation and its kernel warm-up), frames/s (= frames / wall) and without
 the scoring and the warm-up, mesh faces and the share of faces in
@@ -37,7 +40,7 @@ from trisplat.commands.style import CLI_STYLE
 from trisplat.bench.common import BenchTable
 
 DEFAULT_CAPTURE = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "sevenscenes_rgbd"
-METHODS = ("trisplat", "open3d")
+METHODS = ("trisplat", "open3d", "open3d-slam")
 COLUMNS = ["method", "frames", "resolution", "ATE RMSE m", "ATE max m", "RPE m/s", "RPE deg/s", "wall s", "frames/s",
            "scoring s", "compile s", "frames/s without scoring or compiling", "mesh faces", "largest component",
            "Chamfer m", "accuracy m",
@@ -63,10 +66,15 @@ class SlamBenchArgs:
     """use the first this-many selected frames (0 = all; trisplat's --slam.max-frames)"""
     stride: int = 1
     """use every stride-th frame (trisplat's --slam.stride)"""
+    start: int = 0
+    """first capture frame used (trisplat's --slam.start): a later stretch of a capture, scored on its own"""
     depth_scale: float | None = None
     """metres per raw depth unit (default per capture format)"""
     methods: tuple[str, ...] = METHODS
-    """which to run: trisplat, open3d"""
+    """which to run: trisplat, open3d (odometry + TSDF), open3d-slam (Open3D's dense SLAM)"""
+    open3d_slam_downscale: int | None = None
+    """resolution of Open3D's dense SLAM: 1/this of the capture's (default: --downscale; its example reads full
+    frames)"""
     chamfer_samples: int = 200_000
     """points sampled on each mesh for the Chamfer distance and F-score"""
     fps: float = 30.0
@@ -161,6 +169,7 @@ def _run_trisplat(args: SlamBenchArgs, run_dir: Path, extra: list[str]) -> dict:
 
     argv = [str(args.capture), "--out", str(run_dir), "--slam.downscale", str(args.downscale),
             "--slam.max-frames", str(args.max_frames), "--slam.stride", str(args.stride),
+            "--slam.start", str(args.start),
             "--colour-registration", args.colour_registration]
     if args.depth_scale is not None:
         argv += ["--depth-scale", str(args.depth_scale)]
@@ -177,7 +186,18 @@ def _run_open3d(args: SlamBenchArgs, run_dir: Path, registration: str) -> dict:
 
     return open3d_baseline.run(args.capture, run_dir, args.downscale, args.max_frames, reference_mesh=False,
                                stride=args.stride, depth_scale=args.depth_scale, log=lambda *a, **k: None,
-                               voxel_m=args.tsdf_voxel, colour_registration=registration)
+                               voxel_m=args.tsdf_voxel, colour_registration=registration, start=args.start)
+
+
+def _run_open3d_slam(args: SlamBenchArgs, run_dir: Path, registration: str) -> dict:
+    from trisplat.slam import open3d_dense_slam
+
+    down = args.open3d_slam_downscale or args.downscale
+    return open3d_dense_slam.run(args.capture, run_dir, down, args.max_frames, args.stride, args.start,
+                                 args.depth_scale, log=lambda *a, **k: None, colour_registration=registration)
+
+
+RUNNERS = {"open3d": _run_open3d, "open3d-slam": _run_open3d_slam}
 
 
 def main(argv: list[str]) -> int:
@@ -201,7 +221,9 @@ def main(argv: list[str]) -> int:
     reg = apply_colour_registration(stream, args.colour_registration)  # the held-out photos and Open3D's colour
     print(reg.describe(stream.K), flush=True)
     registration = reg.as_option()
-    ids = open3d_baseline.frame_ids(len(stream), args.max_frames, args.stride)
+    if args.open3d_slam_downscale is not None and args.open3d_slam_downscale < 1:
+        raise ValueError(f"--open3d-slam-downscale must be a positive integer, got {args.open3d_slam_downscale}")
+    ids = open3d_baseline.frame_ids(len(stream), args.max_frames, args.stride, args.start)
     ref_c2w = [stream.frames[i].reference_c2w for i in ids]
     stamps = [stream.frames[i].stamp if stream.frames[i].stamp is not None else i / args.fps for i in ids]
     if sum(r is not None for r in ref_c2w) < 3:
@@ -213,12 +235,12 @@ def main(argv: list[str]) -> int:
     print(f"reference: TSDF of {len(ids)} frames at the reference poses", flush=True)
     ref_ply = args.out / "slam_reference_tsdf.ply"
     ref_info = open3d_baseline.reference_tsdf_mesh(args.capture, ref_ply, args.downscale, args.max_frames,
-                                                   args.stride, args.depth_scale, args.tsdf_voxel)
+                                                   args.stride, args.depth_scale, args.tsdf_voxel, args.start)
     reference = load_surface(ref_ply) if ref_info["faces"] else None
 
     table = BenchTable("slam", COLUMNS)
     held_frames = list(range(0, len(ids), 10))  # every 10th frame, unless trisplat's run names its held-out frames
-    details: dict = {"capture": str(args.capture), "frames": len(ids), "stride": args.stride,
+    details: dict = {"capture": str(args.capture), "frames": len(ids), "start": args.start, "stride": args.stride,
                      "colour_registration": reg.as_dict(),
                      "downscale": args.downscale, "resolution": [W, H], "trisplat_slam_extra_args": extra,
                      "reference_tsdf_mesh": ref_info, "methods": {}}
@@ -226,11 +248,13 @@ def main(argv: list[str]) -> int:
         run_dir = args.out / f"slam_{method}"
         if run_dir.exists():
             shutil.rmtree(run_dir)  # a fresh run: no stale checkpoint or outputs
-        print(f"== {method}: {len(ids)} frames at {W}x{H}", flush=True)
+        down = (args.open3d_slam_downscale or args.downscale) if method == "open3d-slam" else args.downscale
+        Wm, Hm = stream.size_at(down)
+        print(f"== {method}: {len(ids)} frames at {Wm}x{Hm}", flush=True)
         load0 = os.getloadavg()[0]
         t0, c0 = time.perf_counter(), time.process_time()
         metrics = (_run_trisplat(args, run_dir, extra) if method == "trisplat"
-                   else _run_open3d(args, run_dir, registration))
+                   else RUNNERS[method](args, run_dir, registration))
         wall, cpu = time.perf_counter() - t0, time.process_time() - c0
         load1 = os.getloadavg()[0]
         scores = score_run(run_dir, ref_c2w, reference, args.chamfer_samples, stamps)
@@ -242,7 +266,7 @@ def main(argv: list[str]) -> int:
         if held.get("frame_numbers"):
             held_frames = list(held["frame_numbers"])
         scores["held_out_mesh"] = mesh_psnr(run_dir, stream, ids, held_frames, args.downscale)
-        row = [method, len(ids), f"{W}x{H}", ate.get("rmse_m"), ate.get("max_m"), rpe.get("translation_m_per_s"),
+        row = [method, len(ids), f"{Wm}x{Hm}", ate.get("rmse_m"), ate.get("max_m"), rpe.get("translation_m_per_s"),
                rpe.get("rotation_deg_per_s"), wall, len(ids) / max(wall, 1e-9), scoring, compiling,
                len(ids) / max(wall - scoring - compiling, 1e-9),
                mesh.get("num_faces"), mesh.get("largest_component_fraction"), geo.get("chamfer"),
@@ -257,7 +281,8 @@ def main(argv: list[str]) -> int:
 
     thr = next((m["geometry"]["threshold"] for m in details["methods"].values() if m.get("geometry")), None)
     table.notes.append(
-        f"Capture {args.capture.name}: {len(ids)} frames (stride {args.stride}) at {W}x{H} (1/{args.downscale}). "
+        f"Capture {args.capture.name}: {len(ids)} frames (capture frames {ids[0]} to {ids[-1]}, stride {args.stride}) "
+        f"at {W}x{H} (1/{args.downscale}). "
         "ATE: camera centres after the rigid SE(3) alignment (no scale) onto the reference poses. RPE: the relative "
         "pose error over 1 s (TUM's definition; frames without timestamps at 1/--fps s), RMSE of its translation and "
         "rotation per second (trisplat.slam.trajectory.rpe_per_second). Wall s: the whole "
@@ -281,6 +306,10 @@ def main(argv: list[str]) -> int:
         "the frames' exposure: trisplat's mesh through each frame's interpolated exposure (its metrics.json; Open3D "
         "has no exposure model). Open3D: "
         "RGB-D odometry (hybrid term) frame to frame + UniformTSDFVolume (trisplat.slam.open3d_baseline). "
+        "Open3D dense SLAM (open3d-slam): open3d.t.pipelines.slam.Model, frame-to-model point-to-plane tracking "
+        "against the voxel block grid's ray-cast depth, every frame fused, at its dense_slam.py example's defaults "
+        "(voxel 5.8 mm, truncation 8 voxels, depth 0.1-3 m, mesh at weight 3; trisplat.slam.open3d_dense_slam); its "
+        "wall includes loading its frames. "
         "Load = 1-minute load average before and after each method (the machine may be shared). "
         f"Colour: {reg.describe(stream.K)} (trisplat.data.colour_registration; the held-out photos both methods are "
         "scored on are read the same way)."

@@ -59,9 +59,12 @@ def _o3d():
     return o3d
 
 
-def frame_ids(n_frames: int, max_frames: int = 0, stride: int = 1) -> list[int]:
-    """The capture frames used: every stride-th, then the first max_frames (0 = all), as trisplat.slam.system."""
-    ids = list(range(0, n_frames, max(1, stride)))
+def frame_ids(n_frames: int, max_frames: int = 0, stride: int = 1, start: int = 0) -> list[int]:
+    """The capture frames used: every stride-th from frame `start`, then the first max_frames (0 = all), as
+    trisplat.slam.system."""
+    if start < 0 or (n_frames and start >= n_frames):
+        raise ValueError(f"start frame {start} is outside the capture's {n_frames} frames (0 to {n_frames - 1})")
+    ids = list(range(start, n_frames, max(1, stride)))
     return ids[:max_frames] if max_frames else ids
 
 
@@ -81,12 +84,12 @@ def _load_frames(stream, ids, downscale: int) -> list:
 
 
 def reference_tsdf_mesh(capture: Path, out_ply: Path, downscale: int = 2, max_frames: int = 0, stride: int = 1,
-                        depth_scale: float | None = None, voxel_m: float = VOXEL_M) -> dict:
+                        depth_scale: float | None = None, voxel_m: float = VOXEL_M, start: int = 0) -> dict:
     """TSDF mesh of the selected frames fused at the capture's reference poses (frames without one are skipped),
     written to out_ply: the geometry reference both SLAM meshes are compared with. Returns its facts."""
     o3d = _o3d()
     stream = open_stream(capture, depth_scale=depth_scale)
-    ids = [i for i in frame_ids(len(stream), max_frames, stride) if stream.frames[i].reference_c2w is not None]
+    ids = [i for i in frame_ids(len(stream), max_frames, stride, start) if stream.frames[i].reference_c2w is not None]
     if not ids:
         raise ValueError(f"{capture}: no reference poses among the selected frames: no reference mesh")
     t0 = time.time()
@@ -143,7 +146,7 @@ def largest_component_fraction(o3d, mesh) -> float:
 
 def run(capture: Path, out: Path, downscale: int = 2, max_frames: int = 0, reference_mesh: bool = True,
         stride: int = 1, depth_scale: float | None = None, log=print, voxel_m: float = VOXEL_M,
-        colour_registration: str = "off") -> dict:
+        colour_registration: str = "off", start: int = 0) -> dict:
     """Odometry + TSDF over the selected frames; writes OUT/trajectory.txt (TUM), OUT/mesh.ply, OUT/metrics.json
     (and OUT/reference_tsdf_mesh.ply with reference_mesh); returns the metrics dict. colour_registration: as
     `trisplat slam --colour-registration` (the bench gives both methods the same colour)."""
@@ -154,7 +157,7 @@ def run(capture: Path, out: Path, downscale: int = 2, max_frames: int = 0, refer
     out.mkdir(parents=True, exist_ok=True)
     stream = open_stream(capture, depth_scale=depth_scale)
     reg = apply_colour_registration(stream, colour_registration)
-    ids = frame_ids(len(stream), max_frames, stride)
+    ids = frame_ids(len(stream), max_frames, stride, start)
     n = len(ids)
     W, H = stream.size_at(downscale)
     intrinsic, K = _intrinsic(o3d, stream, downscale)
@@ -197,7 +200,8 @@ def run(capture: Path, out: Path, downscale: int = 2, max_frames: int = 0, refer
     write_tum_trajectory(out / "trajectory.txt", stamps, c2w)
     o3d.io.write_triangle_mesh(str(out / "mesh.ply"), mesh)
     res = {
-        "capture": str(capture), "frames": n, "stride": max(1, stride), "resolution": [W, H], "odometry_failures": failures,
+        "capture": str(capture), "frames": n, "start": start, "stride": max(1, stride), "resolution": [W, H],
+        "odometry_failures": failures,
         "colour_registration": reg.as_dict(),
         "load_seconds": load_s, "odometry_seconds": odo_s, "tsdf_seconds": tsdf_s, "seconds": odo_s + tsdf_s,
         "mesh": {"faces": len(mesh.triangles), "vertices": len(mesh.vertices),

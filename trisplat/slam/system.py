@@ -41,6 +41,8 @@ class SlamConfig:
     """stop after this many frames (0 = all)"""
     stride: int = 1
     """use every stride-th frame"""
+    start: int = 0
+    """first capture frame used (a later stretch of a capture; frames are numbered from it)"""
     sigma: float = 0.3
     """window sharpness of the soft renderer during SLAM (1 soft ... 0 hard)"""
     sigma_end: float = 0.02
@@ -215,7 +217,7 @@ def _fmt_s(s: float) -> str:
 
 # settings that number the frames and keyframes or change what a frame holds: a resumed run keeps the saved ones
 RESUME_FIXED = {"capture": "CAPTURE", "format": "CAPTURE", "depth_scale": "--depth-scale",
-                "stride": "--slam.stride", "downscale": "--slam.downscale",
+                "stride": "--slam.stride", "downscale": "--slam.downscale", "start": "--slam.start",
                 "colour_registration": "--colour-registration"}
 
 
@@ -421,7 +423,10 @@ def run_slam(stream: RGBDStream, out: Path, cfg: SlamConfig, resume: bool = Fals
     prepare_run_dir(out, resume, force, checkpoint=CHECKPOINT)
     D = cfg.downscale
     K = stream.K_at(D)
-    ids = list(range(0, len(stream), cfg.stride))
+    if not 0 <= cfg.start < len(stream):
+        raise ValueError(f"--slam.start {cfg.start} is outside the capture's {len(stream)} frames "
+                         f"(0 to {len(stream) - 1})")
+    ids = list(range(cfg.start, len(stream), cfg.stride))
     if cfg.max_frames:
         ids = ids[: cfg.max_frames]
     record = {"capture": str(Path(stream.root).resolve()), "format": stream.format,

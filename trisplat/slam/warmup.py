@@ -42,7 +42,7 @@ def warm_up(cfg: SlamConfig, log=print) -> float:
 
     t0 = time.perf_counter()
     small = dataclasses.replace(
-        cfg, downscale=1, max_frames=0, stride=1, checkpoint_every=0, realtime=False, keyframe_every=2,
+        cfg, downscale=1, max_frames=0, stride=1, start=0, checkpoint_every=0, realtime=False, keyframe_every=2,
         final_iters=min(cfg.final_iters, 4), final_ba_rounds=min(cfg.final_ba_rounds, 1), final_ba_map_iters=2,
         eval_every=1, mesh_resolution=64,
         mapping=dataclasses.replace(cfg.mapping, iters=2, first_iters=3))
