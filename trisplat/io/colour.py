@@ -35,7 +35,17 @@ def linear_to_srgb_slope(x) -> np.ndarray:
 
 def srgb_to_linear_torch(x):
     """srgb_to_linear for torch tensors, differentiable: negative values count as 0, values above 1 follow the same
-    curve (a colour the optimiser pushes past white still gets a gradient back)."""
+    curve (a colour the optimiser pushes past white still gets a gradient back). CPU float32 tensors go through one
+    fused Numba pass (trisplat.render.colour_kernels), anything else through srgb_to_linear_ops."""
+    from trisplat.render import colour_kernels
+
+    if colour_kernels.applies(x):
+        return colour_kernels.srgb_to_linear_fused(x)
+    return srgb_to_linear_ops(x)
+
+
+def srgb_to_linear_ops(x):
+    """srgb_to_linear_torch in torch operations (any device; the fused kernels' readable twin and test oracle)."""
     import torch
 
     x = x.clamp_min(0.0)
@@ -45,7 +55,17 @@ def srgb_to_linear_torch(x):
 
 def linear_to_srgb_torch(x):
     """linear_to_srgb for torch tensors, differentiable: negative values count as 0, values above 1 follow the same
-    curve (clip the result for display)."""
+    curve (clip the result for display). CPU float32 tensors go through one fused Numba pass
+    (trisplat.render.colour_kernels), anything else through linear_to_srgb_ops."""
+    from trisplat.render import colour_kernels
+
+    if colour_kernels.applies(x):
+        return colour_kernels.linear_to_srgb_fused(x)
+    return linear_to_srgb_ops(x)
+
+
+def linear_to_srgb_ops(x):
+    """linear_to_srgb_torch in torch operations (any device; the fused kernels' readable twin and test oracle)."""
     import torch
 
     x = x.clamp_min(0.0)
