@@ -85,3 +85,39 @@ def test_fused_kernels_match_the_torch_twin_in_value_and_gradient():
             ok[m.faces[5, :2]] = False  # float32 they agree to float32's precision only; in float64 exactly
         torch.testing.assert_close(a.grad[ok], b.grad[ok], atol=tol, rtol=tol)
     assert float(normal_smoothness(a, faces, pairs[:0])) == 0.0  # no pairs
+
+
+def test_the_kernels_at_any_thread_count_with_unused_vertices_repeated_pairs_and_kept_tables():
+    """Every thread count gives the torch twin's value and gradient (the passes split faces and vertices among the
+    threads); vertices no face uses get 0, a pair listed twice counts twice, and the tables built once serve later
+    calls with moved positions."""
+    import numba
+    import trimesh
+
+    from trisplat.train.fused_smoothness import smoothness_topology
+    from trisplat.train.losses import normal_smoothness_torch
+
+    m = trimesh.creation.icosphere(subdivisions=2)
+    rng = np.random.default_rng(2)
+    verts = np.concatenate([m.vertices + 0.05 * rng.standard_normal(m.vertices.shape), rng.standard_normal((7, 3))])
+    faces = torch.tensor(m.faces, dtype=torch.int64)
+    pairs = face_adjacency(faces)
+    pairs = torch.cat([pairs, pairs[:5]])  # repeated pairs
+    topo = smoothness_topology(faces, pairs, len(verts))
+    before = numba.get_num_threads()
+    try:
+        for threads in sorted({1, 2, 3, numba.config.NUMBA_NUM_THREADS}):
+            numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+            for shift in (0.0, 0.02):
+                v = verts + shift * rng.standard_normal(verts.shape)
+                a = torch.tensor(v, dtype=torch.float64, requires_grad=True)
+                b = torch.tensor(v, dtype=torch.float64, requires_grad=True)
+                la = normal_smoothness(a, faces, pairs, topo)
+                lb = normal_smoothness_torch(b, faces, pairs)
+                (2.0 * la).backward()
+                (2.0 * lb).backward()
+                assert abs(float(la) - float(lb)) < 1e-12
+                torch.testing.assert_close(a.grad, b.grad, atol=1e-12, rtol=1e-10)
+                assert float(a.grad[len(m.vertices):].abs().max()) == 0.0
+    finally:
+        numba.set_num_threads(before)

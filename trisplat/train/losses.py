@@ -107,14 +107,17 @@ def face_adjacency(faces: torch.Tensor) -> torch.Tensor:
     return torch.as_tensor(pairs.reshape(-1, 2), dtype=torch.int64, device=faces.device)
 
 
-def normal_smoothness(positions: torch.Tensor, faces: torch.Tensor, pairs: torch.Tensor) -> torch.Tensor:
+def normal_smoothness(positions: torch.Tensor, faces: torch.Tensor, pairs: torch.Tensor,
+                      topology=None) -> torch.Tensor:
     """normal_smoothness_torch's value and gradient; fused Numba kernels for CPU tensors (trisplat.train.
-    fused_smoothness; `trisplat bench losses`: 3.7x faster on a 328k-face sphere)."""
+    fused_smoothness; `trisplat bench losses`: 3.7x faster on a 328k-face sphere). topology: the kernels' tables of
+    faces and pairs (fused_smoothness.smoothness_topology), kept by a caller whose face table stays; built per call
+    otherwise."""
     if positions.device.type != "cpu":
         return normal_smoothness_torch(positions, faces, pairs)
     from trisplat.train.fused_smoothness import normal_smoothness_fused
 
-    return normal_smoothness_fused(positions, faces, pairs)
+    return normal_smoothness_fused(positions, faces, pairs, topology)
 
 
 def normal_smoothness_torch(positions: torch.Tensor, faces: torch.Tensor, pairs: torch.Tensor) -> torch.Tensor:

@@ -18,6 +18,7 @@ from trisplat.data.types import SceneData
 from trisplat.io.atomic import atomic_write_text
 from trisplat.progress import progress_bar
 from trisplat.render import rasterize
+from trisplat.render.rasterize import camera_center
 from trisplat.scene.model import TriangleScene
 from trisplat.scene.sh import num_sh_bases
 from trisplat.strategy import ops
@@ -28,6 +29,8 @@ from trisplat.strategy.prune import final_max_weight_prune, prune
 from trisplat.strategy.refine import accumulate_colour_gradient, refine_surface
 from trisplat.timing import stage
 from trisplat.train import losses, schedules
+from trisplat.train.adam import adam_step
+from trisplat.train.fused_sh_colour import sh_colours
 from trisplat.train.checkpoint import atomic_torch_save, checkpoint_state, load_checkpoint, restore_trainable
 from trisplat.train.config import TrainConfig
 from trisplat.train.connect import (  # noqa: F401 (re-exported: the switch's constants, tests use them)
@@ -267,15 +270,18 @@ class Trainer:
         """refine_intrinsics: the render also carries the gradient of the view's intrinsics (training steps)."""
         cam = self.data.cameras[cam_index]
         deg = schedules.sh_degree(p, self.cfg) if sh_degree is None else sh_degree
-        sh = self.ts.sh()[:, : num_sh_bases(deg)]
         w2c = torch.as_tensor(cam.world_to_camera, dtype=torch.float32)
         positions, K = self.ts.params["positions"], cam.K
         if self.intrinsics is not None:
             K = self.intrinsics.K(cam_index)
             if refine_intrinsics:
                 positions = self.intrinsics.warp(positions, w2c, cam_index)
+        # the vertex colours as the renderer would evaluate them from the SH table (direction camera centre ->
+        # vertex), straight from the two SH parameters (trisplat.train.fused_sh_colour)
+        colours = sh_colours(self.ts.params["sh_dc"], self.ts.params["sh_rest"], positions - camera_center(w2c),
+                             num_sh_bases(deg))
         return rasterize(
-            positions, self.ts.faces.to(torch.int32), sh, self.ts.opacities(),
+            positions, self._faces_int32(), colours, self.ts.opacities(),
             self.sigma(p) if sigma is None else sigma, w2c, torch.as_tensor(K, dtype=torch.float32),
             cam.width, cam.height, background=self.background, near=self.cfg.near, supersample=supersample,
             tile_size=self.cfg.tile_size, backend=self.cfg.backend, linear_light=self.ts.linear_light,
@@ -318,15 +324,41 @@ class Trainer:
         if self.show_progress:
             print(f"switch: {note}", file=sys.stderr, flush=True)
 
-    def _face_pairs(self) -> torch.Tensor:
-        """Faces sharing an edge (for the smoothness term), recomputed whenever the face table changed."""
-        key = (self.ts.faces.data_ptr(), self.ts.num_faces)
-        if getattr(self, "_pairs_key", None) != key:
-            self._pairs, self._pairs_key = losses.face_adjacency(self.ts.faces), key
+    def _faces_int32(self) -> torch.Tensor:
+        """The face table as the renderer takes it (int32), converted once per face table (the key holds the table:
+        its memory is not reused while kept)."""
+        faces = self.ts.faces
+        old = getattr(self, "_faces32", None)
+        if old is None or old[0] is not faces or old[1] != faces._version:
+            self._faces32 = (faces, faces._version, faces.to(torch.int32))
+        return self._faces32[2]
+
+    def _face_pairs(self) -> tuple[torch.Tensor, object]:
+        """Faces sharing an edge (for the smoothness term) and the fused kernels' tables of them (None off the CPU),
+        recomputed whenever the face table changed (the key holds the table itself: its memory is not reused)."""
+        key = (self.ts.faces, self.ts.faces._version, self.ts.num_vertices)
+        old = getattr(self, "_pairs_key", None)
+        if old is None or old[0] is not key[0] or old[1:] != key[1:]:
+            pairs, topo = losses.face_adjacency(self.ts.faces), None
+            if self.ts.faces.device.type == "cpu":
+                from trisplat.train.fused_smoothness import smoothness_topology
+
+                topo = smoothness_topology(self.ts.faces, pairs, self.ts.num_vertices)
+            self._pairs, self._pairs_key = (pairs, topo), key
         return self._pairs
 
     def _params_finite(self) -> bool:
-        return all(_all_finite(v) for v in self.ts.params.values())
+        """No NaN/Inf in the parameters. Skipped for the tensors the fused Adam wrote and checked at the end of the
+        last step (trisplat.train.adam), when nothing changed them since: the same tensor objects (held here, so
+        their memory is not reused) at the same version (a torch write in place bumps it)."""
+        checked = getattr(self, "_checked_params", None) or {}
+        return all(_all_finite(v) for n, v in self.ts.params.items()
+                   if not (n in checked and checked[n][0] is v and checked[n][1] == v._version))
+
+    def _mark_checked(self, ok: bool) -> None:
+        """After the fused Adam: its parameters are finite as they stand (ok), or nothing is known (not ok)."""
+        self._checked_params = {n: (v, v._version) for n, v in self.ts.params.items()
+                                if v.grad is not None} if ok else None
 
     def train_step(self) -> dict:
         """One optimisation step; {"ok": False} when the loss, a gradient or a parameter is NaN/Inf (the caller
@@ -362,13 +394,13 @@ class Trainer:
                     self.ts.params["positions"], w2c, K, out.depth, out.alpha, cfg.vertex_depth_max_diff)
             if self.connected and cfg.surface_smoothness > 0:
                 loss = loss + cfg.surface_smoothness * losses.normal_smoothness(
-                    self.ts.params["positions"], self.ts.faces, self._face_pairs())
+                    self.ts.params["positions"], self.ts.faces, *self._face_pairs())
         with stage("backward"):
             loss.backward()
-        with stage("checks"):
-            finite = _all_finite(loss) and all(_all_finite(v.grad) for v in self.ts.params.values()
-                                               if v.grad is not None)
-        if not finite:
+        with stage("optimizer"):  # the gradients' and the new values' checks folded into Adam's pass
+            finite = _all_finite(loss) and adam_step(self.ts.optimizer)
+            self._mark_checked(finite)
+        if not finite:  # (the parameters may be partly updated: the caller rolls back to the last good state)
             self.ts.optimizer.zero_grad(set_to_none=True)
             if self.exposure is not None:
                 self.exposure.zero_grad()
@@ -376,18 +408,15 @@ class Trainer:
                 self.intrinsics.zero_grad()
             return {"ok": False}
         if self._refining(p):
-            accumulate_colour_gradient(self.ts)
-        with stage("optimizer"):
-            self.ts.optimizer.step()
-            self.ts.optimizer.zero_grad(set_to_none=True)
+            accumulate_colour_gradient(self.ts)  # (reads the gradients, which Adam leaves as they are)
+        self.ts.optimizer.zero_grad(set_to_none=True)
         if self.exposure is not None:
             self.exposure.step(self.lr_scale)
         if refine_K:
             # the positions' decay (1 -> lr_position_final_ratio), so the intrinsics settle with the scene
             decay = schedules.position_lr(p, cfg, 1.0) / cfg.lr_position if cfg.lr_position > 0 else 1.0
             self.intrinsics.step(self.lr_scale * decay)
-        # (no check of the parameters here: Adam's update of finite parameters with finite gradients is finite, and
-        # the next step checks them first anyway)
+        # (the next step checks the parameters first, but for those the fused Adam just checked)
         with torch.no_grad(), stage("statistics"):
             st = self.ts.face_stats
             st["max_weight"] = torch.maximum(st["max_weight"], out.max_weight.detach())
