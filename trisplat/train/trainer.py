@@ -350,7 +350,9 @@ class Trainer:
     def _params_finite(self) -> bool:
         """No NaN/Inf in the parameters. Skipped for the tensors the fused Adam wrote and checked at the end of the
         last step (trisplat.train.adam), when nothing changed them since: the same tensor objects (held here, so
-        their memory is not reused) at the same version (a torch write in place bumps it)."""
+        their memory is not reused) at the same version (a torch write in place bumps it; a write through `.data`
+        or a numpy view does not: code that edits parameters that way must replace them, as trisplat.strategy.ops
+        does)."""
         checked = getattr(self, "_checked_params", None) or {}
         return all(_all_finite(v) for n, v in self.ts.params.items()
                    if not (n in checked and checked[n][0] is v and checked[n][1] == v._version))
