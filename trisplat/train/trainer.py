@@ -278,8 +278,8 @@ class Trainer:
                 positions = self.intrinsics.warp(positions, w2c, cam_index)
         # the vertex colours as the renderer would evaluate them from the SH table (direction camera centre ->
         # vertex), straight from the two SH parameters (trisplat.train.fused_sh_colour)
-        colours = sh_colours(self.ts.params["sh_dc"], self.ts.params["sh_rest"], positions - camera_center(w2c),
-                             num_sh_bases(deg))
+        colours = sh_colours(self.ts.params["sh_dc"], self.ts.params["sh_rest"],
+                             positions - camera_center(w2c).to(positions), num_sh_bases(deg))
         return rasterize(
             positions, self._faces_int32(), colours, self.ts.opacities(),
             self.sigma(p) if sigma is None else sigma, w2c, torch.as_tensor(K, dtype=torch.float32),
