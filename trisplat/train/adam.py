@@ -1,4 +1,5 @@
-"""torch.optim.Adam's step as one parallel Numba pass per parameter, with the finiteness check folded in (issue 50).
+"""torch.optim.Adam's step as one parallel Numba pass per parameter, and one check of the new values that stands for the
+checks of the gradients and of the parameters (issue 50).
 
 The optimizer stays a torch.optim.Adam: its param_groups (the learning rates the trainer sets), its state (step,
 exp_avg, exp_avg_sq: what checkpoints save and trisplat.strategy.ops remaps when rows change) and its state_dict are
