@@ -229,3 +229,30 @@ def test_dense_tracker_normal_equations_kernel_matches_the_numpy_reference():
             assert c == pytest.approx(c_ref, rel=1e-9)
             np.testing.assert_allclose(Hk, H_ref, rtol=1e-9, atol=1e-9 * np.abs(H_ref).max())
             np.testing.assert_allclose(gk, g_ref, rtol=1e-9, atol=1e-9 * np.abs(g_ref).max())
+
+
+def test_dense_tracker_coverage_kernel_matches_the_numpy_reference():
+    """track_kernels.coverage (one Numba pass) against _coverage_reference (numpy): the share of valid observed pixels
+    landed on and the mean depth residual of the landings, with points landing twice on a pixel, behind the camera,
+    outside the image, on missing depth and beyond the outlier distance; none landing gives (0, 0)."""
+    from trisplat.slam.track import _coverage, _coverage_reference, _make_level
+
+    rng = np.random.default_rng(1)
+    H, W = 60, 80
+    K = np.array([[70.0, 0, 40.0], [0, 70.0, 30.0], [0, 0, 1]])
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    depth = 2.0 + 0.2 * np.sin(u / 9) + 0.1 * np.cos(v / 7)
+    obs = depth + 0.03 * rng.standard_normal((H, W))
+    obs[rng.random((H, W)) < 0.1] = 0.0
+    rgb = np.full((H, W, 3), 0.5)
+    L = _make_level(rgb, depth, depth > 0, rgb, obs, K, TrackConfig())
+    L.Xall = np.concatenate([L.Xall, L.Xall[:50] * 1.001, [[0.0, 0.0, -1.0]]])  # doubles and a point behind
+    for xi in ([0.0] * 6, [0.05, -0.02, 0.01, 0.02, -0.03, 0.01], [0.5, 0, 0, 0, 0, 0]):
+        T = exp_se3(torch.tensor(xi, dtype=torch.float64)).numpy()
+        for outlier in (0.05, 0.1):
+            ref = _coverage_reference(L, T, outlier)
+            got = _coverage(L, T, outlier)
+            assert 0.0 < ref[0] < 1.0 and ref[1] > 0
+            assert got[0] == pytest.approx(ref[0], rel=1e-12) and got[1] == pytest.approx(ref[1], rel=1e-9)
+    far = exp_se3(torch.tensor([0.0, 0.0, -5.0, 0, 0, 0], dtype=torch.float64)).numpy()  # everything behind
+    assert _coverage(L, far, 0.1) == _coverage_reference(L, far, 0.1) == (0.0, 0.0)

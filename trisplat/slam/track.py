@@ -14,7 +14,7 @@ import torch
 
 from trisplat.render.rasterize import rasterize
 from trisplat.slam.se3 import exp_se3
-from trisplat.slam.track_kernels import normal_equations
+from trisplat.slam.track_kernels import SERIAL_BELOW, normal_equations, normal_equations_serial
 from trisplat.train.losses import photometric
 
 IDENTITY = torch.eye(4, dtype=torch.float64)
@@ -273,7 +273,19 @@ def _make_level(rgb_r, surf_r, ok_r, rgb_o, depth_o, K, cfg: TrackConfig) -> _Le
 
 def _coverage(L: _Level, T: np.ndarray, outlier: float) -> tuple[float, float]:
     """(fraction of the observation's valid-depth pixels that some covered map pixel moved by T lands on within
-    `outlier` metres, the mean |depth residual| of those landings)."""
+    `outlier` metres, the mean |depth residual| of those landings): _coverage_reference in one Numba pass."""
+    from trisplat.slam.track_kernels import coverage
+
+    distinct, hits, total = coverage(np.ascontiguousarray(L.Xall, np.float64), np.ascontiguousarray(L.Do, np.float64),
+                                     np.ascontiguousarray(L.K, np.float64), np.ascontiguousarray(T, np.float64),
+                                     float(outlier))
+    if hits == 0:
+        return 0.0, 0.0
+    return distinct / max(1, L.n_valid), total / hits
+
+
+def _coverage_reference(L: _Level, T: np.ndarray, outlier: float) -> tuple[float, float]:
+    """What _coverage computes, with numpy arrays of every point (the tests' oracle)."""
     Q = L.Xall @ T[:3, :3].T + T[:3, 3]
     h, w = L.Do.shape
     z = Q[:, 2]
@@ -351,10 +363,10 @@ def _normal_equations_reference(L: _Level, T: np.ndarray, cfg: TrackConfig, w_ph
 def _normal_equations(L: _Level, T: np.ndarray, cfg: TrackConfig, w_photo: float):
     """What _normal_equations_reference computes, in one Numba pass (track_kernels; 5x less of the tracker's time
     than the numpy arrays of every point's residuals and Jacobians)."""
-    cost, n, H, g = normal_equations(L.X, L.Ir, L.Io, L.gIo[0], L.gIo[1], L.Do, L.gDo[0], L.gDo[1], L.Dbad, L.K,
-                                     np.ascontiguousarray(T, np.float64), float(cfg.outlier_depth),
-                                     float(cfg.depth_sigma), float(cfg.photo_sigma), float(cfg.huber),
-                                     float(w_photo), bool(L.photo))
+    kernel = normal_equations if len(L.X) >= SERIAL_BELOW else normal_equations_serial
+    cost, n, H, g = kernel(L.X, L.Ir, L.Io, L.gIo[0], L.gIo[1], L.Do, L.gDo[0], L.gDo[1], L.Dbad, L.K,
+                           np.ascontiguousarray(T, np.float64), float(cfg.outlier_depth), float(cfg.depth_sigma),
+                           float(cfg.photo_sigma), float(cfg.huber), float(w_photo), bool(L.photo))
     return cost / max(1, n), int(n), H, g
 
 
@@ -440,9 +452,11 @@ def track_dense(positions: torch.Tensor, faces: torch.Tensor, colors: torch.Tens
         return TrackResult(w2c0, float("inf"), 0, False, 0.0, 0.0)
     w_photo = 1.0
     L = None
+    cost = None  # the robust cost of the last level solved at T (its solve computed it): None = to compute
     for li in range(len(pyramid)):
         L = level_data(rend, li)
         if len(L.X) < 20:
+            cost = None
             continue
         T, cost, its, conv = _solve_level(L, T, cfg, cfg.max_iters[li], w_photo)
         total += its
@@ -461,12 +475,13 @@ def track_dense(positions: torch.Tensor, faces: torch.Tensor, colors: torch.Tens
             w2c = T2 @ w2c
             T = T2
         else:
-            T = np.eye(4)
+            T, cost = np.eye(4), None
     else:
         pass  # L is the finest level at w2c0, T the correction to apply
     if L is None or len(L.X) < 20:
         return TrackResult(w2c, float("inf"), total, False, 0.0, 0.0)
-    cost = _normal_equations(L, T, cfg, w_photo)[0]
+    if cost is None:
+        cost = _normal_equations(L, T, cfg, w_photo)[0]
     coverage, residual = _coverage(L, T, cfg.outlier_depth)
     return TrackResult(w2c, float(cost), total, converged_all, min(1.0, coverage), residual)
 

@@ -122,3 +122,46 @@ def normal_equations(X, Ir, Io, gIx, gIy, Do, gDx, gDy, Dbad, K, T, outlier, dep
         for b in range(a):
             H[a, b] = H[b, a]
     return costs.sum(), counts.sum(), H, g
+
+
+# The same pass on one thread, for the coarse levels: a few thousand points are done before a parallel region's
+# threads have all started (on a shared machine, one waits for a core), and the chunk sums are added in the same
+# order, so both give the same numbers.
+normal_equations_serial = nb.njit(cache=True)(normal_equations.py_func)
+SERIAL_BELOW = 8 * CHUNK  # points: fewer go through normal_equations_serial
+
+
+@nb.njit(cache=True)
+def coverage(X, Do, K, T, outlier):  # pragma: no cover (compiled)
+    """(distinct observation pixels landed on, hits, sum of |depth residual| over the hits) of the map points X [M,3]
+    moved by T [4,4] and projected (floor of the pixel coordinate, centres at +0.5) into the observed depth Do: a hit
+    lands on a valid observed depth within `outlier` metres. One serial pass (the landed mask is shared): what
+    track._coverage_reference computes with numpy arrays of every point."""
+    h, w = Do.shape
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    landed = np.zeros(h * w, np.bool_)
+    distinct = 0
+    hits = 0
+    total = 0.0
+    for i in range(X.shape[0]):
+        x, y, z0 = X[i, 0], X[i, 1], X[i, 2]
+        z = T[2, 0] * x + T[2, 1] * y + T[2, 2] * z0 + T[2, 3]
+        if not z > 1e-3:
+            continue
+        qx = T[0, 0] * x + T[0, 1] * y + T[0, 2] * z0 + T[0, 3]
+        qy = T[1, 0] * x + T[1, 1] * y + T[1, 2] * z0 + T[1, 3]
+        fu = np.floor(fx * qx / z + cx)
+        fv = np.floor(fy * qy / z + cy)
+        if not (fu >= 0 and fu < w and fv >= 0 and fv < h):
+            continue
+        u = int(fu)
+        v = int(fv)
+        d = Do[v, u]
+        if d > 0 and abs(d - z) < outlier:
+            hits += 1
+            total += abs(d - z)
+            k = v * w + u
+            if not landed[k]:
+                landed[k] = True
+                distinct += 1
+    return distinct, hits, total
