@@ -2,7 +2,9 @@
 
 Stages (all compiled, parallel, no atomics):
   setup_faces      per face: projection, culling, edge lines, incentre normaliser, colours -> THETA [F,29]
-  bin_faces        exact triangle/tile overlap (separating axes), per-tile lists sorted by centroid depth
+  depth_order      the shown faces by centroid depth (a parallel stable radix sort)
+  bin_faces        exact triangle/tile overlap (separating axes), per-tile lists sorted by centroid depth (a parallel
+                   stable counting sort of the pairs by tile, in the depth order)
   raster_forward   one task per tile: front-to-back compositing over per-row spans
   raster_backward  one task per tile: the exact gradient of the loss w.r.t. THETA per (tile, face) pair
   setup_backward   pair gradients -> per face -> per face-vertex (positions, colours, opacity), exact chain
@@ -47,22 +49,132 @@ def setup_faces(pos, faces, w2c, K, rgb, opac, opacity_min, near, far, min_area,
                                       width, height, tile, theta, rect, key, argmin, xc, uv, lens)
 
 
+BLOCKS_PER_THREAD = 4  # blocks of the parallel scans, counting sorts and radix passes, per numba thread (the
+# results depend on neither the blocks nor the threads; fewer blocks, less serial work between the passes)
+MAX_BLOCKS = 256
+
+
+def _blocks() -> int:
+    return min(MAX_BLOCKS, BLOCKS_PER_THREAD * numba.get_num_threads())
+
+
+RADIX_BITS = 11  # digit of the depth sort: 3 passes over 32-bit keys
+RADIX_BINS = 1 << RADIX_BITS
+
+
 @njit(parallel=True, cache=_CACHE)
+def _exclusive_scan(counts, out, B):
+    """out[0] = 0, out[i + 1] = counts[0] + ... + counts[i]: per-block sums, their serial scan (a value per block),
+    then each block's own scan from its offset."""
+    n = counts.shape[0]
+    sums = np.zeros(B + 1, np.int64)
+    for b in prange(B):
+        s = 0
+        for i in range(b * n // B, (b + 1) * n // B):
+            s += counts[i]
+        sums[b + 1] = s
+    for b in range(B):
+        sums[b + 1] += sums[b]
+    out[0] = 0
+    for b in prange(B):
+        s = sums[b]
+        for i in range(b * n // B, (b + 1) * n // B):
+            s += counts[i]
+            out[i + 1] = s
+
+
+def depth_order(ntiles, key):
+    """The faces with tiles (ntiles > 0) in increasing order of their sort key, equal keys in face order: exactly
+    numpy's stable argsort of the keys' int32 bits (positive float32 depths order like them), in parallel.
+
+    A parallel compaction of the shown faces, then a least-significant-digit radix sort of their keys (RADIX_BITS a
+    pass; a pass whose digit is the same for every key is skipped). Each pass is a stable counting sort in blocks
+    (_blocks(): a few per thread): per-block digit counts, offsets in (digit, block) order, each block scattering
+    its elements in order; so the whole sort is stable and its result depends on neither the blocks nor the
+    threads."""
+    return _depth_order(ntiles, key, _blocks())
+
+
+@njit(parallel=True, cache=_CACHE)
+def _depth_order(ntiles, key, B):
+    F = ntiles.shape[0]
+    cnt = np.zeros(B + 1, np.int64)
+    for b in prange(B):
+        c = 0
+        for f in range(b * F // B, (b + 1) * F // B):
+            if ntiles[f] > 0:
+                c += 1
+        cnt[b + 1] = c
+    for b in range(B):
+        cnt[b + 1] += cnt[b]
+    n = cnt[B]
+    ids = np.empty(n, np.int32)
+    keys = np.empty(n, np.uint32)
+    bits = key.view(np.int32)
+    for b in prange(B):
+        j = cnt[b]
+        for f in range(b * F // B, (b + 1) * F // B):
+            if ntiles[f] > 0:
+                ids[j] = f
+                keys[j] = np.uint32(np.int64(bits[f]) + 2147483648)  # signed order as unsigned order
+                j += 1
+    ids2 = np.empty(n, np.int32)
+    keys2 = np.empty(n, np.uint32)
+    hist = np.zeros((B, RADIX_BINS), np.int64)
+    for shift in range(0, 32, RADIX_BITS):
+        for b in prange(B):
+            h = hist[b]
+            h[:] = 0
+            for i in range(b * n // B, (b + 1) * n // B):
+                h[(keys[i] >> shift) & (RADIX_BINS - 1)] += 1
+        if n == 0:
+            break
+        d0 = (keys[0] >> shift) & (RADIX_BINS - 1)
+        c0 = 0
+        for b in range(B):
+            c0 += hist[b, d0]
+        if c0 == n:
+            continue  # every key has this digit: the pass would leave the order as it is
+        s = 0
+        for d in range(RADIX_BINS):  # exclusive offsets in (digit, block) order
+            for b in range(B):
+                c = hist[b, d]
+                hist[b, d] = s
+                s += c
+        for b in prange(B):
+            h = hist[b]
+            for i in range(b * n // B, (b + 1) * n // B):
+                d = (keys[i] >> shift) & (RADIX_BINS - 1)
+                j = h[d]
+                h[d] = j + 1
+                ids2[j] = ids[i]
+                keys2[j] = keys[i]
+        ids, ids2 = ids2, ids
+        keys, keys2 = keys2, keys
+    return ids
+
+
 def bin_faces(theta, rect, ntiles, order, width, height, tile):
     """Pairs (face-major order) and per-tile lists of pair indices sorted front to back.
 
     order lists the faces with tiles (ntiles > 0; faces without may be in it too) by increasing sort key (centroid
     depth), equal keys in face order (a stable sort): filling the tile lists in that order leaves each list sorted,
-    with no per-tile sort.
+    with no per-tile sort. The fill is a stable counting sort of the pairs by tile in blocks of `order` (_blocks():
+    a few per thread; per-block tile counts, offsets in (tile, block) order, each block writing its pairs in
+    order): every list is in `order`'s order whatever the threads. The face offsets are a parallel block scan.
     Returns face_start [F+1], pair_face [P], tile_start [NT+1], tile_pairs [P] (indices into the face-major
     pair arrays) and its inverse pos_of [P]."""
+    return _bin_faces(theta, rect, ntiles, order, width, height, tile, _blocks())
+
+
+@njit(parallel=True, cache=_CACHE)
+def _bin_faces(theta, rect, ntiles, order, width, height, tile, B):
     F = ntiles.shape[0]
     ntx = (width + tile - 1) // tile
     nty = (height + tile - 1) // tile
     nt = ntx * nty
-    face_start = np.zeros(F + 1, np.int64)
-    for f in range(F):
-        face_start[f + 1] = face_start[f] + ntiles[f]
+    face_start = np.empty(F + 1, np.int64)
+    _exclusive_scan(ntiles, face_start, B)
     P = face_start[F]
     pair_face = np.empty(P, np.int32)
     pair_tile = np.empty(P, np.int32)
@@ -78,21 +190,35 @@ def bin_faces(theta, rect, ntiles, order, width, height, tile):
                     pair_face[j] = f
                     pair_tile[j] = ty * ntx + tx
                     j += 1
-    tile_start = np.zeros(nt + 1, np.int64)
-    for p in range(P):
-        tile_start[pair_tile[p] + 1] += 1
-    for t in range(nt):
-        tile_start[t + 1] += tile_start[t]
-    fill = tile_start[:-1].copy()
-    tile_pairs = np.empty(tile_start[nt], np.int32)
+    n = order.shape[0]
+    hist = np.zeros((B, nt), np.int64)
+    for b in prange(B):
+        h = hist[b]
+        for i in range(b * n // B, (b + 1) * n // B):
+            f = order[i]
+            for p in range(face_start[f], face_start[f + 1]):
+                h[pair_tile[p]] += 1
+    tile_start = np.empty(nt + 1, np.int64)
+    s = 0
+    for t in range(nt):  # exclusive offsets in (tile, block) order
+        tile_start[t] = s
+        for b in range(B):
+            c = hist[b, t]
+            hist[b, t] = s
+            s += c
+    tile_start[nt] = s
+    tile_pairs = np.empty(s, np.int32)
     pos_of = np.empty(P, np.int32)  # face-major pair index -> position in the tile-ordered lists
-    for i in range(order.shape[0]):
-        f = order[i]
-        for p in range(face_start[f], face_start[f + 1]):
-            t = pair_tile[p]
-            tile_pairs[fill[t]] = p
-            pos_of[p] = fill[t]
-            fill[t] += 1
+    for b in prange(B):
+        h = hist[b]
+        for i in range(b * n // B, (b + 1) * n // B):
+            f = order[i]
+            for p in range(face_start[f], face_start[f + 1]):
+                t = pair_tile[p]
+                j = h[t]
+                h[t] = j + 1
+                tile_pairs[j] = p
+                pos_of[p] = j
     return face_start, pair_face, tile_start, tile_pairs, pos_of
 
 

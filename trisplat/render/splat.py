@@ -78,12 +78,11 @@ def forward_numba(
             argmin,
             ntiles,
         )
-    # Front-to-back face order: a stable sort of the depth keys (positive float32 depths order like their int32
-    # bits, which numpy sorts by radix); culled faces (key 0, no tiles) sort first and are skipped by the binning.
+    # Front-to-back face order: a stable sort of the depth keys of the faces on screen (bin_faces skips the others;
+    # on a surface seen from inside, most faces are culled) by their int32 bits (positive float32 depths order like
+    # them): kernels.depth_order, a parallel radix sort giving numpy's stable argsort's order
     with stage("r_sort"):
-        # only the faces on screen (bin_faces skips the others; on a surface seen from inside, most faces are culled)
-        shown = np.flatnonzero(ntiles).astype(np.int32)
-        order = shown[np.argsort(key[shown].view(np.int32), kind="stable")]
+        order = kn.depth_order(ntiles, key)
     with stage("r_bin"):
         face_start, pair_face, tile_start, tile_pairs, pos_of = kn.bin_faces(
             theta, rect, ntiles, order, width, height, tile
