@@ -161,3 +161,45 @@ def test_scatter_vertices_parallel_copies_sum_as_np_add_at():
     np.add.at(ref[2], idx, go.reshape(-1))
     for got, want in zip(out, ref):
         np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-4)
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_scatter_vertices_hub_and_unreferenced_vertices_at_1_and_2_threads(threads):
+    """The scatter on its parallel path with a vertex shared by a tenth of the corners, vertices no face uses, and
+    two chunks (f0 > 0 on the second): every thread count gives the serial pass's float32 sums bit for bit (each
+    vertex adds its corners in face order), and they match numpy's unbuffered add."""
+    import numba
+
+    from trisplat.render import kernels as kn
+
+    threads = min(threads, numba.config.NUMBA_NUM_THREADS)
+    rng = np.random.default_rng(1)
+    V, F = 3_000, 2 * kn.SCATTER_SERIAL_BELOW
+    faces = rng.integers(0, V // 2, size=(F, 3)).astype(np.int32)  # vertices V/2.. unreferenced
+    hub = rng.random((F, 3)) < 0.1
+    faces[hub] = 7
+    gp, gr = rng.normal(size=(F, 3, 3)).astype(np.float32), rng.normal(size=(F, 3, 3)).astype(np.float32)
+    go = rng.normal(size=(F, 3)).astype(np.float32)
+
+    def run(n_threads):
+        old = numba.get_num_threads()
+        numba.set_num_threads(n_threads)
+        try:
+            out = [np.zeros((V, 3), np.float32), np.zeros((V, 3), np.float32), np.zeros(V, np.float32)]
+            for f0, f1 in ((0, F // 2), (F // 2, F)):
+                kn.scatter_vertices(faces, f0, gp[f0:f1], gr[f0:f1], go[f0:f1], *out)
+            return out
+        finally:
+            numba.set_num_threads(old)
+
+    got, serial = run(threads), run(1)
+    for a, b in zip(got, serial):
+        np.testing.assert_array_equal(a, b)
+    assert not got[0][V // 2:].any() and not got[2][V // 2:].any()
+    ref = [np.zeros((V, 3)), np.zeros((V, 3)), np.zeros(V)]
+    idx = faces.reshape(-1)
+    np.add.at(ref[0], idx, gp.reshape(-1, 3))
+    np.add.at(ref[1], idx, gr.reshape(-1, 3))
+    np.add.at(ref[2], idx, go.reshape(-1))
+    for a, want in zip(got, ref):
+        np.testing.assert_allclose(a, want, rtol=1e-4, atol=2e-3)
