@@ -15,6 +15,7 @@ from trisplat.scene.init import (
     init_random,
     init_soup,
     initial_scene,
+    point_normals,
     tetra_faces,
 )
 
@@ -143,6 +144,49 @@ def test_soup_sizes_and_shape():
     assert np.abs(normals.mean(0)).max() < 0.15  # random orientations
     again, _ = init_soup(g, seed=5)
     assert torch.equal(again.positions, scene.positions)
+
+
+def test_point_normals_on_planes_and_not_on_blobs():
+    rng = np.random.default_rng(0)
+    # a wall (x = 2) and a floor (z = 0), with a little noise, and an isotropic blob with no plane
+    wall = np.c_[np.full(300, 2.0), rng.uniform(-1, 1, 300), rng.uniform(0, 2, 300)]
+    floor = np.c_[rng.uniform(-1, 1, 300), rng.uniform(-1, 1, 300), np.zeros(300)]
+    wall[:, 0] += rng.normal(0, 0.01, 300)
+    blob = rng.normal(size=(300, 3)) * 0.2 + [-5, 0, 0]
+    n = point_normals(np.concatenate([wall, floor, blob]))
+    assert np.isfinite(n[:600]).all() and np.isnan(n[600:]).mean() > 0.9
+    np.testing.assert_allclose(np.abs(n[:300, 0]), 1.0, atol=0.02)  # the wall's normal is +-x
+    np.testing.assert_allclose(np.abs(n[300:600, 2]), 1.0, atol=0.02)  # the floor's, +-z
+    np.testing.assert_allclose(np.linalg.norm(n[:600], axis=1), 1.0, atol=1e-9)
+    assert np.isnan(point_normals(np.zeros((3, 3)))).all()  # too few points: no normal
+
+
+def test_unbounded_soup_lies_in_its_points_planes(tmp_path):
+    """A room seen from inside seeds a soup (method 'auto'); with soup_planes its triangles on the walls and floor
+    lie in the planes of their points, not at random angles (a layer as thick as the triangles are wide: issue 49's walls in front of
+    the truth). Fails with randomly oriented triangles (mean |cos| to the plane's normal about 0.5)."""
+    from trisplat.data import load_dataset
+    from trisplat.synth.room import write_room_scene
+
+    room = write_room_scene(tmp_path / "room", n_views=8, width=32, height=24, samples_per_pixel=1, n_points=1500)
+    data = load_dataset(room, cache_dir=tmp_path / "cache", prepare="lazy")
+    scene, report = initial_scene(data, method="auto", sh_degree=0, soup_planes=True)
+    assert report.method == "soup" and "local plane" in report.summary()
+    tri = scene.positions.numpy().astype(np.float64)[scene.faces.numpy()]
+    normals = face_normals(scene.positions.numpy().astype(np.float64), scene.faces.numpy())
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    # the true room in the normalised frame: floor at the lowest points, walls at the extreme x
+    world = np.linalg.inv(np.asarray(data.normalization, np.float64))
+    c = tri.mean(1) @ world[:3, :3].T + world[:3, 3]
+    n_world = normals @ world[:3, :3].T
+    n_world /= np.linalg.norm(n_world, axis=1, keepdims=True)
+    floor = np.abs(c[:, 2]) < 0.05
+    walls = np.abs(np.abs(c[:, 0]) - 3.0) < 0.05
+    assert floor.sum() > 100 and walls.sum() > 100
+    assert np.median(np.abs(n_world[floor, 2])) > 0.97
+    assert np.median(np.abs(n_world[walls, 0])) > 0.97
+    _, plain = initial_scene(data, method="auto", sh_degree=0)  # off by default: TS v1's random angles
+    assert "local plane" not in plain.summary()
 
 
 def test_random_init_inside_bounds():

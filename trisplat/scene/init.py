@@ -16,6 +16,15 @@ DEDUP_RELATIVE_TOL = 1e-7  # points closer than this x bounding-box diagonal are
 FLAT_RELATIVE_TOL = 1e-6  # smallest / largest singular value of the centred points below this = flat set
 JITTER_RELATIVE = 1e-4  # jitter amplitude for flat sets, x bounding-box diagonal
 MIN_SOUP_RELATIVE_SIZE = 1e-4  # smallest soup triangle radius, x bounding-box diagonal (isolated duplicates)
+# with soup_planes, the soup of a capture with sparse points (SfM, RGB-D) lies in each point's local plane: the normal of the
+# POINT_NORMAL_NEIGHBOURS nearest points (PCA), where they are flat (smallest / middle spread of the covariance below
+# POINT_NORMAL_FLATNESS); elsewhere the triangle keeps a random orientation (TS v1's rule). Randomly oriented,
+# triangles of 2.23x the point spacing make a layer as thick as they are wide; compositing favours its front and
+# pruning by blending weight keeps the front, so a wall ended where the front of that layer was: on the synthetic
+# room (walls 3.4-4.6 m from the cameras) the soup's walls sat 14 cm in front of the truth after 300 steps and 35 cm
+# at the switch (docs/benchmarks.md, issue 49)
+POINT_NORMAL_NEIGHBOURS = 12
+POINT_NORMAL_FLATNESS = 0.3
 DEFAULT_RANDOM_POINTS = 10_000
 # 'auto' seeds a soup, not a Delaunay tetrahedralisation, on captures whose content reaches this many times farther
 # than the cameras (a room seen from inside, an unbounded real scene: bonsai 1.37-1.76 depending on the SfM run's
@@ -192,6 +201,26 @@ def _tangent_rotations(normals: np.ndarray, rng: np.random.Generator) -> np.ndar
     return np.stack([t1, t2, n], axis=2)  # columns: template x, y, z -> t1, t2, normal
 
 
+def point_normals(points: np.ndarray, k: int = POINT_NORMAL_NEIGHBOURS,
+                  flatness: float = POINT_NORMAL_FLATNESS) -> np.ndarray:
+    """Unit normals [P,3] of a point set from the covariance of each point's k nearest points (itself included):
+    the eigenvector of the smallest eigenvalue, where the neighbourhood is flat (sqrt of smallest / middle
+    eigenvalue below `flatness`); NaN rows elsewhere (too few points, a line, a blob). Sign arbitrary."""
+    from scipy.spatial import cKDTree
+
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    out = np.full(pts.shape, np.nan)
+    if len(pts) < 4:
+        return out
+    k = min(int(k), len(pts))
+    _, idx = cKDTree(pts).query(pts, k=k)
+    nb = pts[idx] - pts[idx].mean(axis=1, keepdims=True)
+    w, v = np.linalg.eigh(np.einsum("nki,nkj->nij", nb, nb) / k)  # ascending eigenvalues
+    flat = np.sqrt(np.maximum(w[:, 0], 0.0)) < flatness * np.sqrt(np.maximum(w[:, 1], 0.0))
+    out[flat] = v[flat, :, 0]
+    return out
+
+
 def soup_sizes(pts: np.ndarray, factor: float = SOUP_SIZE_FACTOR) -> np.ndarray:
     """Per-point triangle circumradius: `factor` x RMS distance to the SOUP_NEIGHBOURS nearest others."""
     from scipy.spatial import cKDTree
@@ -336,11 +365,13 @@ def initial_scene(
     max_points: int | None = None,
     random_points: int = DEFAULT_RANDOM_POINTS,
     random_size_factor: float = SOUP_SIZE_FACTOR,
+    soup_planes: bool = False,
 ) -> tuple[TriangleScene, InitReport]:
     """Initial triangles for a SceneData: 'auto' = Delaunay of its points (a soup on them when the content reaches
     UNBOUNDED_CONTENT_RATIO x farther than the cameras and the photos have no alpha: a scene seen from inside or
     all around); without points, the visual hull of the silhouettes when the training images have alpha, else
-    random points in `data.bounds`; or force 'delaunay' | 'soup' | 'hull' | 'random'."""
+    random points in `data.bounds`; or force 'delaunay' | 'soup' | 'hull' | 'random'. soup_planes: a soup on
+    sparse points lies in their local planes (`point_normals`) instead of at random angles."""
     if method not in ("auto", "delaunay", "soup", "hull", "random"):
         raise ValueError(f"unknown initialisation method {method!r} (auto, delaunay, soup, hull, random)")
     has_points = data.points is not None and len(data.points) > 0
@@ -376,9 +407,12 @@ def initial_scene(
     if method == "delaunay":
         return init_delaunay(data.points, data.point_colors, opacity, sh_degree, max_points, seed)
     if method == "soup":
-        scene, report = init_soup(
-            data.points, data.point_colors, seed=seed, opacity=opacity, sh_degree=sh_degree, max_points=max_points
-        )
+        normals = point_normals(data.points) if soup_planes else None
+        scene, report = init_soup(data.points, data.point_colors, seed=seed, opacity=opacity, sh_degree=sh_degree,
+                                  max_points=max_points, normals=normals)
+        if normals is not None:
+            report.notes.append(f"{int(np.isfinite(normals[:, 0]).sum())} of {len(normals)} triangles in their "
+                                "points' local plane")
         if auto_note:
             report.notes.append(auto_note)
         return scene, report

@@ -53,8 +53,13 @@ class TrainConfig:
     # -- initialisation
     init: str = "auto"
     """'auto' | 'delaunay' (TS+) | 'soup' (MeshSplatting) | 'hull' (surface of the visual hull of the alpha
-    silhouettes) | 'random' (points in the scene box). auto: delaunay with sparse points, else hull when the training
+    silhouettes) | 'random' (points in the scene box). auto: soup for sparse points of an unbounded scene (content
+    reaching over 1.3x farther than the cameras), delaunay for other sparse points, else hull when the training
     images have alpha, else random."""
+    init_soup_planes: bool = False
+    """Lay each soup triangle in the plane of its 12 nearest sparse points where they are flat (PCA), instead of at
+    a random angle (TS v1's rule). On the synthetic room seen from inside: walls nearer the truth and +0.45 dB at
+    3000 steps; not yet measured on a full-length real capture, so off by default (docs/benchmarks.md, issue 49)."""
     init_max_points: int = 50_000
     """Subsample the sparse points to at most this many before initialisation."""
     init_random_points: int = 10_000

@@ -158,7 +158,7 @@ class Trainer:
                 initial, report = initial_scene(
                     data, method=cfg.init, sh_degree=cfg.sh_degree, seed=cfg.seed, opacity=cfg.init_opacity,
                     max_points=cfg.init_max_points, random_points=cfg.init_random_points,
-                    random_size_factor=cfg.init_random_size)
+                    random_size_factor=cfg.init_random_size, soup_planes=cfg.init_soup_planes)
                 self.init_report = report
             initial = _with_sh_degree(initial, cfg.sh_degree)
             self.ts = ops.make_trainable(initial.detached().to(self.device), {})
