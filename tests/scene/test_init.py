@@ -163,8 +163,9 @@ def test_point_normals_on_planes_and_not_on_blobs():
 
 def test_unbounded_soup_lies_in_its_points_planes(tmp_path):
     """A room seen from inside seeds a soup (method 'auto'); with soup_planes its triangles on the walls and floor
-    lie in the planes of their points, not at random angles (a layer as thick as the triangles are wide: issue 49's walls in front of
-    the truth). Fails with randomly oriented triangles (mean |cos| to the plane's normal about 0.5)."""
+    lie in the planes of their points, not at random angles (a layer as thick as the triangles are wide: issue 49's
+    walls in front of the truth). Fails with randomly oriented triangles (mean |cos| to the plane's normal about
+    0.5)."""
     from trisplat.data import load_dataset
     from trisplat.synth.room import write_room_scene
 
