@@ -71,3 +71,6 @@ def test_dense_slam_refuses_bad_settings(rgbd_capture, tmp_path):
         open3d_dense_slam.run(rgbd_capture, tmp_path / "b", cfg=DenseSlamConfig(depth_min_m=3.0, depth_max_m=2.0))
     with pytest.raises(ValueError, match="1 frame\\(s\\) selected \\(start 13"):
         open3d_dense_slam.run(rgbd_capture, tmp_path / "c", start=13)
+    # 80x60 frames: Open3D's ray-cast never returns on them; refused with the size, not hung
+    with pytest.raises(ValueError, match="at least 160x120 .* these are 80x60"):
+        open3d_dense_slam.run(rgbd_capture, tmp_path / "d", downscale=2, max_frames=3)

@@ -50,6 +50,9 @@ class DenseSlamConfig:
                              f"{self.depth_max_m}")
 
 
+MIN_WIDTH, MIN_HEIGHT = 160, 120
+
+
 def track_sequence(o3d, frames, intrinsic, cfg: DenseSlamConfig, log=print) -> tuple[list[np.ndarray], list, object]:
     """Frame-to-model SLAM over (rgb uint8 [h,w,3], depth float32 metres [h,w]) frames: the first frame is the world
     (identity), each later one is tracked against the model ray-cast at the previous pose, then fused. Returns
@@ -58,6 +61,12 @@ def track_sequence(o3d, frames, intrinsic, cfg: DenseSlamConfig, log=print) -> t
     dev = o3d.core.Device("CPU:0")
     K = o3d.core.Tensor(np.asarray(intrinsic.intrinsic_matrix, np.float64))
     H, W = frames[0][1].shape
+    if W < MIN_WIDTH or H < MIN_HEIGHT:
+        # measured: on the tests' 80x60 frames its first ray-cast reports "allocated 0 fragments" and never
+        # returns; 160x120 and 320x240 run
+        raise ValueError(f"Open3D's dense SLAM needs frames of at least {MIN_WIDTH}x{MIN_HEIGHT} (it hangs in its "
+                         f"ray-cast on smaller ones); these are {W}x{H}: use a smaller downscale "
+                         "(`trisplat bench slam --open3d-slam-downscale`)")
     pose = o3d.core.Tensor(np.eye(4))
     model = o3d.t.pipelines.slam.Model(cfg.voxel_m, cfg.block_resolution, cfg.block_count, pose, dev)
     current = o3d.t.pipelines.slam.Frame(H, W, K, dev)
