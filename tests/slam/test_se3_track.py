@@ -256,3 +256,24 @@ def test_dense_tracker_coverage_kernel_matches_the_numpy_reference():
             assert got[0] == pytest.approx(ref[0], rel=1e-12) and got[1] == pytest.approx(ref[1], rel=1e-9)
     far = exp_se3(torch.tensor([0.0, 0.0, -5.0, 0, 0, 0], dtype=torch.float64)).numpy()  # everything behind
     assert _coverage(L, far, 0.1) == _coverage_reference(L, far, 0.1) == (0.0, 0.0)
+
+
+def test_ate_summary_skips_frames_without_reference_and_needs_three():
+    from trisplat.slam.trajectory import ate_summary
+
+    rng = np.random.default_rng(3)
+    ref = [np.eye(4) for _ in range(6)]
+    for k, T in enumerate(ref):
+        T[:3, 3] = [0.1 * k, 0.02 * k * k, 0.0]
+    est = [T.copy() for T in ref]
+    # a rigid motion of the whole estimate is aligned away; 1 cm of error on one frame is what remains
+    c, s = np.cos(0.3), np.sin(0.3)
+    M = np.array([[c, -s, 0, 1.0], [s, c, 0, -2.0], [0, 0, 1, 0.5], [0, 0, 0, 1]])
+    est = [M @ T for T in est]
+    est[2][:3, 3] += M[:3, :3] @ np.array([0.0, 0.0, 0.01])
+    est[4][:3, 3] += rng.normal(size=3)  # a wild pose whose frame has no reference: left out
+    refs = [T if k != 4 else None for k, T in enumerate(ref)]
+    a = ate_summary(est, refs)
+    assert a["frames"] == 5
+    assert 0.003 < a["rmse_m"] < 0.01 and 0.005 < a["max_m"] <= 0.0101
+    assert ate_summary(est, [ref[0], None, ref[2], None, None, None]) is None

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from trisplat.data.rgbd_stream import load_frame, open_stream
-from trisplat.slam.trajectory import ate_rmse, write_tum_trajectory
+from trisplat.slam.trajectory import ate_summary, write_tum_trajectory
 
 VOXEL_M = 0.01  # TSDF voxel edge (metres)
 SDF_TRUNC_M = 0.04  # TSDF truncation distance (metres): 4 voxels
@@ -213,9 +213,7 @@ def run(capture: Path, out: Path, downscale: int = 2, max_frames: int = 0, refer
     ref = [stream.frames[i].reference_c2w for i in ids]
     have = [k for k, r in enumerate(ref) if r is not None]
     if len(have) >= 3:
-        rmse, err = ate_rmse(np.array([c2w[k] for k in have]), np.array([ref[k] for k in have]))
-        res["ate"] = {"rmse_m": rmse, "max_m": float(err.max()), "frames": len(have),
-                      "alignment": "rigid SE(3) (Horn/Umeyama, no scale) of estimated onto reference camera centres"}
+        res["ate"] = ate_summary(c2w, ref)
         if reference_mesh:
             t2 = time.time()
             rm = tsdf_mesh(o3d, [frames[k] for k in have], [ref[k] for k in have], intrinsic, K, voxel_m)

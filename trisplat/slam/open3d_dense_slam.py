@@ -25,7 +25,7 @@ import numpy as np
 
 from trisplat.data.rgbd_stream import open_stream
 from trisplat.slam.open3d_baseline import _intrinsic, _load_frames, _o3d, frame_ids, largest_component_fraction
-from trisplat.slam.trajectory import ate_rmse, write_tum_trajectory
+from trisplat.slam.trajectory import ate_summary, write_tum_trajectory
 
 
 @dataclass
@@ -158,12 +158,9 @@ def run(capture: Path, out: Path, downscale: int = 2, max_frames: int = 0, strid
                  "largest_component_fraction": largest_component_fraction(o3d, mesh) if len(mesh.triangles) else 0.0},
         "open3d": o3d.__version__,
     }
-    ref = [stream.frames[i].reference_c2w for i in ids]
-    have = [k for k, r in enumerate(ref) if r is not None]
-    if len(have) >= 3:
-        rmse, err = ate_rmse(np.array([c2w[k] for k in have]), np.array([ref[k] for k in have]))
-        res["ate"] = {"rmse_m": rmse, "max_m": float(err.max()), "frames": len(have),
-                      "alignment": "rigid SE(3) (Horn/Umeyama, no scale) of estimated onto reference camera centres"}
+    ate = ate_summary(c2w, [stream.frames[i].reference_c2w for i in ids])
+    if ate is not None:
+        res["ate"] = ate
     (out / "metrics.json").write_text(json.dumps(res, indent=2))
     log(json.dumps({k: res[k] for k in ("frames", "resolution", "fps", "tracking", "mesh", "ate") if k in res}))
     return res

@@ -18,7 +18,8 @@ from trisplat.slam.exposure import apply_exposure, exposure_range, identity, int
 from trisplat.slam.loop import Edge, LoopCloser, LoopConfig, optimise_pose_graph
 from trisplat.slam.map import PruneConfig, SlamMap, SpawnConfig, prune, spawn
 from trisplat.slam.mapping import Keyframe, MapConfig, refine
-from trisplat.slam.se3 import ate_rmse, log_so3_angle, write_tum_trajectory
+from trisplat.slam.se3 import log_so3_angle, write_tum_trajectory
+from trisplat.slam.trajectory import ate_summary
 from trisplat.slam.track import TrackConfig, track_frame
 
 CHECKPOINT = "checkpoint.pt"
@@ -806,15 +807,11 @@ def write_outputs(stream, out: Path, cfg: SlamConfig, state: SlamState, ids, key
         "eval_seconds": eval_s,  # scoring the held-out frames (not part of SLAM: the bench reports it apart)
         "compile_seconds": compile_s,  # the kernels compiled (or loaded) before the run (trisplat.slam.warmup)
     }
-    ref = [stream.frames[i].reference_c2w for i in ids]
-    have = [k for k, r in enumerate(ref) if r is not None]
-    if len(have) >= 3:
-        est = np.array([state.c2w[k] for k in have])
-        rmse, err = ate_rmse(est, np.array([ref[k] for k in have]))
-        metrics["ate"] = {"rmse_m": rmse, "max_m": float(err.max()), "median_m": float(np.median(err)),
-                          "frames": len(have),
-                          "alignment": "rigid SE(3) (Horn/Umeyama, no scale) of estimated onto reference camera centres"}
-        log(f"ATE RMSE {rmse * 100:.2f} cm over {len(have)} frames (after rigid SE(3) alignment, no scale)")
+    ate = ate_summary(state.c2w, [stream.frames[i].reference_c2w for i in ids])
+    if ate is not None:
+        metrics["ate"] = ate
+        log(f"ATE RMSE {ate['rmse_m'] * 100:.2f} cm over {ate['frames']} frames (after rigid SE(3) alignment, no "
+            "scale)")
     hm, hs = metrics["held_out"], metrics["held_out_mesh"]
     if hm["psnr"] is not None:
         log(f"held-out frames ({hm['frames']}, not keyframes): the map renders {hm['psnr']:.2f} dB"

@@ -58,6 +58,18 @@ def ate_rmse(est_c2w: np.ndarray, ref_c2w: np.ndarray) -> tuple[float, np.ndarra
     return float(np.sqrt(np.mean(err**2))), err
 
 
+def ate_summary(est_c2w, ref_c2w) -> dict | None:
+    """metrics.json's "ate" entry for per-frame estimated and reference camera-to-world poses (a reference may be
+    None: that frame is left out): RMSE, max and median in metres over the frames with a reference, or None with
+    fewer than 3 of them."""
+    have = [k for k, r in enumerate(ref_c2w) if r is not None]
+    if len(have) < 3:
+        return None
+    rmse, err = ate_rmse(np.array([est_c2w[k] for k in have]), np.array([ref_c2w[k] for k in have]))
+    return {"rmse_m": rmse, "max_m": float(err.max()), "median_m": float(np.median(err)), "frames": len(have),
+            "alignment": "rigid SE(3) (Horn/Umeyama, no scale) of estimated onto reference camera centres"}
+
+
 def rpe_per_second(est_c2w: np.ndarray, ref_c2w: np.ndarray, stamps: np.ndarray, delta_s: float = 1.0
                    ) -> dict | None:
     """Relative pose error over delta_s seconds (the TUM benchmark's RPE): for every frame i, the frame j nearest
