@@ -172,7 +172,7 @@ def test_unbounded_soup_lies_in_its_points_planes(tmp_path):
     room = write_room_scene(tmp_path / "room", n_views=8, width=32, height=24, samples_per_pixel=1, n_points=1500)
     data = load_dataset(room, cache_dir=tmp_path / "cache", prepare="lazy")
     scene, report = initial_scene(data, method="auto", sh_degree=0, soup_planes=True)
-    assert report.method == "soup" and "local plane" in report.summary()
+    assert report.method == "soup" and "in their local plane" in report.summary()
     tri = scene.positions.numpy().astype(np.float64)[scene.faces.numpy()]
     normals = face_normals(scene.positions.numpy().astype(np.float64), scene.faces.numpy())
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
@@ -187,7 +187,7 @@ def test_unbounded_soup_lies_in_its_points_planes(tmp_path):
     assert np.median(np.abs(n_world[floor, 2])) > 0.97
     assert np.median(np.abs(n_world[walls, 0])) > 0.97
     _, plain = initial_scene(data, method="auto", sh_degree=0)  # off by default: TS v1's random angles
-    assert "local plane" not in plain.summary()
+    assert "in their local plane" not in plain.summary()
 
 
 def test_random_init_inside_bounds():

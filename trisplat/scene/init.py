@@ -411,8 +411,8 @@ def initial_scene(
         scene, report = init_soup(data.points, data.point_colors, seed=seed, opacity=opacity, sh_degree=sh_degree,
                                   max_points=max_points, normals=normals)
         if normals is not None:
-            report.notes.append(f"{int(np.isfinite(normals[:, 0]).sum())} of {len(normals)} triangles in their "
-                                "points' local plane")
+            report.notes.append(f"{int(np.isfinite(normals[:, 0]).sum())} of {len(normals)} sparse points flat "
+                                "enough to lay their triangle in their local plane")
         if auto_note:
             report.notes.append(auto_note)
         return scene, report
