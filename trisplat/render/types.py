@@ -100,9 +100,12 @@ class _BoxPool(torch.autograd.Function):
         return (g / (s * s))[:, None, :, None, :].expand(H, s, W, s, C).reshape(H * s, W * s, C), None
 
 
-def _pool(x: torch.Tensor, s: int) -> torch.Tensor:
+def box_downsample(x: torch.Tensor, s: int) -> torch.Tensor:
     """Area (box) downsampling of an [H*s, W*s, C] image by s: the gradient flows through."""
     return _BoxPool.apply(x, s)
+
+
+_pool = box_downsample
 
 
 def downsample(out: RenderOutput, s: int) -> RenderOutput:

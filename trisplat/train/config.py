@@ -196,6 +196,16 @@ class TrainConfig:
     supersample_4x_from: float = 1.01
     """Progress (0-1) from which training renders 4x4 samples per pixel (>1 disables; 16x the pixels per step,
     costly on CPU)."""
+    coarse_until: float = 0.0
+    """Coarse to fine: until this progress (0-1) training renders at 1/coarse_factor of the training resolution and
+    compares with the photo area-averaged to it (about 1/coarse_factor^2 of the pixels per step); 0 disables. Choose
+    it below prune_from, so that pruning judges faces by full-resolution renders (a face that covers no pixel centre
+    of the coarse image has a blending weight of 0 there)."""
+    coarse_factor: int = 2
+    """Resolution divisor of the coarse steps (2 or 4)."""
+    coarse_min_px: int = 96
+    """The coarse steps only when the coarse image keeps at least this many pixels on its short side (smaller
+    images are cheap at full resolution)."""
 
     # -- MeshSplatting (soup -> connected mesh)
     output: Literal["surface", "soup"] = "surface"
@@ -312,6 +322,11 @@ class TrainConfig:
         from trisplat.render.inputs import check_supersample
 
         check_supersample(self.eval_supersample, "eval_supersample")  # now, not when scoring after the training
+        if self.coarse_factor not in (2, 4):
+            raise ValueError(f"coarse_factor must be 2 or 4, got {self.coarse_factor}")
+        if not 0.0 <= self.coarse_until < 1.0:
+            raise ValueError(f"coarse_until must be a progress in [0, 1) (0 disables the coarse steps), got "
+                             f"{self.coarse_until}")
         if self.output not in ("surface", "soup"):
             raise ValueError(f"output must be 'surface' or 'soup', got {self.output!r}")
         if self.connect_method not in ("fusion", "restricted_delaunay"):

@@ -69,6 +69,21 @@ def supersample(p: float, cfg: TrainConfig) -> int:
     return 1
 
 
+def coarse(p: float, cfg: TrainConfig, width: int, height: int) -> int:
+    """Resolution divisor of a training step at progress p (1: the training resolution): cfg.coarse_factor before
+    cfg.coarse_until when the coarse image keeps at least cfg.coarse_min_px on its short side."""
+    f = int(cfg.coarse_factor)
+    if p < cfg.coarse_until and min(width, height) // f >= cfg.coarse_min_px:
+        return f
+    return 1
+
+
+def pixel_cost(p: float, cfg: TrainConfig, width: int, height: int) -> float:
+    """Rendered pixels per training step at progress p relative to the training resolution (supersampling and the
+    coarse steps): what --minutes planning prices the rest of the schedule with."""
+    return (supersample(p, cfg) / coarse(p, cfg, width, height)) ** 2
+
+
 def prune_threshold(p: float, cfg: TrainConfig) -> float:
     """Rises by prune_threshold_step at each paper pruning event after prune_from."""
     k = max(_event_index(p, cfg.prune_from, cfg.prune_interval), 0)

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 import os
@@ -31,6 +32,7 @@ from trisplat.timing import stage
 from trisplat.train import losses, schedules
 from trisplat.train.adam import adam_step
 from trisplat.train.fused_sh_colour import sh_colours
+from trisplat.train.coarse import coarse_intrinsics, coarse_photo, coarse_size
 from trisplat.train.checkpoint import atomic_torch_save, checkpoint_state, load_checkpoint, restore_trainable
 from trisplat.train.config import TrainConfig
 from trisplat.train.connect import (  # noqa: F401 (re-exported: the switch's constants, tests use them)
@@ -109,6 +111,8 @@ class Trainer:
         self.background = torch.tensor(cfg.background, dtype=torch.float32, device=self.device)
         # length scale of position learning rates: the camera spread, or the content size when cameras barely move
         self.extent = 1.1 * max(data.scene_radius, data.bounds_radius)
+        first = data.cameras[data.train_indices[0]] if len(data.train_indices) else data.cameras[0]
+        self._train_size = (first.width, first.height)  # the coarse steps' pricing in --minutes planning
         self.generator = torch.Generator().manual_seed(cfg.seed)
         self.lr_scale = 1.0
         self.rollbacks = 0
@@ -266,8 +270,9 @@ class Trainer:
 
     # ------------------------------------------------------------------------------------------------- rendering
     def render(self, cam_index: int, p: float, *, supersample: int = 1, sh_degree: int | None = None,
-               sigma: float | None = None, refine_intrinsics: bool = False):
-        """refine_intrinsics: the render also carries the gradient of the view's intrinsics (training steps)."""
+               sigma: float | None = None, refine_intrinsics: bool = False, coarse: int = 1):
+        """refine_intrinsics: the render also carries the gradient of the view's intrinsics (training steps).
+        coarse: render at 1/coarse of the view's resolution (trisplat.train.coarse)."""
         cam = self.data.cameras[cam_index]
         deg = schedules.sh_degree(p, self.cfg) if sh_degree is None else sh_degree
         w2c = torch.as_tensor(cam.world_to_camera, dtype=torch.float32)
@@ -280,15 +285,19 @@ class Trainer:
         # vertex), straight from the two SH parameters (trisplat.train.fused_sh_colour)
         colours = sh_colours(self.ts.params["sh_dc"], self.ts.params["sh_rest"],
                              positions - camera_center(w2c).to(positions), num_sh_bases(deg))
+        width, height = coarse_size(cam.width, cam.height, coarse)
         return rasterize(
             positions, self._faces_int32(), colours, self.ts.opacities(),
-            self.sigma(p) if sigma is None else sigma, w2c, torch.as_tensor(K, dtype=torch.float32),
-            cam.width, cam.height, background=self.background, near=self.cfg.near, supersample=supersample,
+            self.sigma(p) if sigma is None else sigma, w2c,
+            coarse_intrinsics(torch.as_tensor(K, dtype=torch.float32), coarse),
+            width, height, background=self.background, near=self.cfg.near, supersample=supersample,
             tile_size=self.cfg.tile_size, backend=self.cfg.backend, linear_light=self.ts.linear_light,
             check_values=False)  # (train_step checks the parameters itself)
 
-    def gt(self, cam_index: int) -> torch.Tensor:
-        return torch.tensor(np.asarray(self.data.load_image(cam_index), dtype=np.float32), device=self.device)
+    def gt(self, cam_index: int, coarse: int = 1) -> torch.Tensor:
+        """The view's photo [H,W,3] (at 1/coarse of its resolution: trisplat.train.coarse)."""
+        img = torch.tensor(np.asarray(self.data.load_image(cam_index), dtype=np.float32), device=self.device)
+        return coarse_photo(img, coarse, self.ts.linear_light)
 
     # ------------------------------------------------------------------------------------------------------ step
     def _set_learning_rates(self, p: float) -> None:
@@ -377,14 +386,17 @@ class Trainer:
         idx = view_for_step(step, self.data.train_indices, cfg.seed)
         cam = self.data.cameras[idx]
         refine_K = self.intrinsics is not None and p >= cfg.intrinsics_from
+        coarse = schedules.coarse(p, cfg, cam.width, cam.height)
         with stage("render"):
-            out = self.render(idx, p, supersample=schedules.supersample(p, cfg), refine_intrinsics=refine_K)
+            out = self.render(idx, p, supersample=schedules.supersample(p, cfg), refine_intrinsics=refine_K,
+                              coarse=coarse)
         with stage("photo"):
-            gt = self.gt(idx)
+            gt = self.gt(idx, coarse)
         rgb = out.rgb if self.exposure is None else self.exposure.apply(out.rgb, idx)
         with stage("loss"):
             loss = losses.photometric(rgb, gt, cfg.lambda_dssim, backend=cfg.backend)
-        K = torch.as_tensor(cam.K if self.intrinsics is None else self.intrinsics.K(idx), dtype=torch.float32)
+        K_full = torch.as_tensor(cam.K if self.intrinsics is None else self.intrinsics.K(idx), dtype=torch.float32)
+        K = coarse_intrinsics(K_full, coarse)  # the rendered image's
         with stage("terms"):  # the geometric terms beside the photometric loss
             if p < cfg.opacity_penalty_until and cfg.lambda_opacity > 0:
                 loss = loss + cfg.lambda_opacity * self.ts.opacities().mean()
@@ -424,8 +436,8 @@ class Trainer:
             st["max_weight"] = torch.maximum(st["max_weight"], out.max_weight.detach())
             if not self.connected or self._refining(p):  # read by pruning, densification and the refinement only
                 px = projected_edge_px(self.ts.params["positions"].detach(), self.ts.faces,
-                                       torch.as_tensor(cam.world_to_camera, dtype=torch.float32), K, cfg.near,
-                                       cam.width, cam.height)
+                                       torch.as_tensor(cam.world_to_camera, dtype=torch.float32), K_full.detach(),
+                                       cfg.near, cam.width, cam.height)  # (in the training resolution's pixels)
                 st["max_screen_px"] = torch.maximum(st["max_screen_px"], px)
         return {"ok": True, "loss": float(loss.detach()), "psnr": psnr_value(rgb.detach().clamp(0, 1), gt)}
 
@@ -567,11 +579,11 @@ class Trainer:
         a 10% margin covers growth in face count, and later re-plans correct what is left."""
         budget = self.cfg.minutes * 60.0 - elapsed_s
         p0 = self.clock.p(self.step)
-        ss_now = schedules.supersample(p0, self.cfg)
-        bounds = sorted({p0, 1.0, *[b for b in (self.cfg.supersample_2x_from, self.cfg.supersample_4x_from)
-                                     if p0 < b < 1.0]})
-        rel_cost = sum((b - a) * (schedules.supersample(a, self.cfg) / ss_now) ** 2
-                       for a, b in zip(bounds, bounds[1:])) / max(1.0 - p0, 1e-9)
+        cost = functools.partial(schedules.pixel_cost, cfg=self.cfg, width=self._train_size[0],
+                                 height=self._train_size[1])
+        bounds = sorted({p0, 1.0, *[b for b in (self.cfg.supersample_2x_from, self.cfg.supersample_4x_from,
+                                                self.cfg.coarse_until) if p0 < b < 1.0]})
+        rel_cost = sum((b - a) * cost(a) / cost(p0) for a, b in zip(bounds, bounds[1:])) / max(1.0 - p0, 1e-9)
         remaining = max(int(0.9 * budget / max(measured_s_per_step * rel_cost, 1e-4)), 1)
         self.clock.replan(self.step, self.step + remaining)
 
