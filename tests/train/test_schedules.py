@@ -31,6 +31,16 @@ def test_position_lr_hold_and_decay():
     assert S.position_lr(1.0, cfg, 2.0) == pytest.approx(1.5e-5 * 2.0)
 
 
+def test_surface_position_lr_restarts_at_the_switch():
+    cfg = TrainConfig(surface_lr_position=0.1)
+    assert S.surface_position_lr(0.5, 0.6, cfg, 2.0) == S.position_lr(0.5, cfg, 2.0)  # before the switch: the soup's
+    assert S.surface_position_lr(0.6, 0.6, cfg, 2.0) == pytest.approx(1.5e-4 * 2.0)  # 0.1 x lr_position
+    assert S.surface_position_lr(0.8, 0.6, cfg, 2.0) == pytest.approx(2.0 * 1.5e-3 * math.sqrt(0.1 * cfg.lr_position_final_ratio))
+    assert S.surface_position_lr(1.0, 0.6, cfg, 2.0) == pytest.approx(S.position_lr(1.0, cfg, 2.0))
+    off = TrainConfig()  # 0: the soup's decay goes on after the switch
+    assert S.surface_position_lr(0.8, 0.6, off, 2.0) == S.position_lr(0.8, off, 2.0)
+
+
 def test_sh_degree_and_prune_threshold():
     cfg = TrainConfig(sh_degree=3)
     assert S.sh_degree(0.0, cfg) == 0

@@ -56,6 +56,17 @@ def position_lr(p: float, cfg: TrainConfig, extent: float) -> float:
     return cfg.lr_position * extent * math.exp(math.log(cfg.lr_position_final_ratio) * min(q, 1.0))
 
 
+def surface_position_lr(p: float, at: float, cfg: TrainConfig, extent: float) -> float:
+    """The position learning rate after a switch at progress `at` when cfg.surface_lr_position > 0: from
+    surface_lr_position x lr_position at the switch, exponentially to lr_position x lr_position_final_ratio at the
+    end (times extent); the soup's schedule (position_lr) otherwise."""
+    if cfg.surface_lr_position <= 0 or p < at:
+        return position_lr(p, cfg, extent)
+    q = min((p - at) / max(1.0 - at, 1e-9), 1.0)
+    start, end = cfg.surface_lr_position, cfg.lr_position_final_ratio
+    return cfg.lr_position * extent * start * (end / start) ** q
+
+
 def sh_degree(p: float, cfg: TrainConfig) -> int:
     """Active SH degree: one more band every 1k paper-iterations, up to cfg.sh_degree."""
     return min(cfg.sh_degree, int(p * PAPER_STEPS // 1000))

@@ -301,7 +301,9 @@ class Trainer:
 
     # ------------------------------------------------------------------------------------------------------ step
     def _set_learning_rates(self, p: float) -> None:
-        lrs = {"positions": schedules.position_lr(p, self.cfg, self.extent), "sh_dc": self.cfg.lr_sh_dc,
+        pos_lr = schedules.surface_position_lr(p, self.switched_p, self.cfg, self.extent) if self.connected and \
+            self.switched_p is not None else schedules.position_lr(p, self.cfg, self.extent)
+        lrs = {"positions": pos_lr, "sh_dc": self.cfg.lr_sh_dc,
                "sh_rest": self.cfg.lr_sh_dc * self.cfg.lr_sh_rest_ratio, "opacity_logit": self.cfg.lr_opacity}
         for group in self.ts.optimizer.param_groups:
             group["lr"] = lrs[group["name"]] * self.lr_scale
