@@ -276,7 +276,8 @@ class TrainConfig:
     surface_lr_position: float = 0.0
     """After the switch, the position learning rate starts again at this x lr_position and decays exponentially to
     the schedule's final rate at the end (0: the soup's decay goes on, by the switch about 1% of lr_position).
-    Lets the fine-tuning move the fused surface where the soup left it off the photos' depth."""
+    For experiments: at 0.1 the synthetic room's surface scored +0.37 dB (its walls did not move), bonsai's 30-minute
+    run -0.9 dB (docs/benchmarks.md, issue 49)."""
     surface_linear_light: bool = True
     """After the switch, blend the vertex colours in linear light (render.RenderOptions.linear_light), as every glTF
     viewer blends a mesh's vertex colours and texels: the fine-tuned colours are then the ones the exported files
