@@ -122,9 +122,9 @@ def test_faces_crossing_the_near_plane_or_off_screen_are_culled_whole():
 
 @pytest.mark.parametrize("s,C", [(2, 3), (2, 1), (4, 3)])
 def test_box_pool_is_the_mean_over_each_pixels_samples_value_and_gradient(s, C):
-    """Supersampling's box filter (render.types._pool, a custom autograd function for speed) against the plain
+    """Supersampling's box filter (render.types.box_downsample, a custom autograd function for speed) against the plain
     reshape-and-mean it replaces, forward and backward, and torch's gradcheck in float64."""
-    from trisplat.render.types import _pool
+    from trisplat.render.types import box_downsample as _pool
 
     g = torch.Generator().manual_seed(s * 10 + C)
     H, W = 5, 7

@@ -128,15 +128,11 @@ def estimate_ground(cameras: Sequence, depths: Sequence, up: np.ndarray, thickne
     # enough points. The plane's height where the vertical through the cameras' centre meets it, not a sample
     # point's: a floor tilted from the guessed up spans heights (6 degrees over 3 m: 0.3), and a plane through one
     # low floor point and the table counted as the lowest (a synthetic room: the table top came out as the floor)
+    # (inliers: the subset's share; the refit below is checked on all the points)
     centre = np.mean([np.linalg.inv(np.asarray(c.world_to_camera, np.float64))[:3, 3] for c in cameras], axis=0)
-    candidates = []
-    for i in good:
-        h_i = float(anchor[i] @ n[i])
-        candidates.append((float(centre @ up + (h_i - centre @ n[i]) / (n[i] @ up)), n[i], h_i,
-                           int((np.abs(p @ n[i] - h_i) < tolerance).sum())))
-    candidates = [c for c in candidates if c[3] >= min_share * len(p)]
-    if not candidates:
-        return None
+    h_good = np.einsum("ij,ij->i", anchor[good], n[good])
+    under = centre @ up + (h_good - n[good] @ centre) / (n[good] @ up)
+    candidates = [(float(under[j]), n[i], float(h_good[j]), float(share[i])) for j, i in enumerate(good)]
     # the floor: the lowest plane that enough points lie on (a stool's or a table's top can hold as many)
     lowest = min(c[0] for c in candidates)
     near = [c for c in candidates if c[0] <= lowest + 4 * tolerance]

@@ -105,8 +105,6 @@ def box_downsample(x: torch.Tensor, s: int) -> torch.Tensor:
     return _BoxPool.apply(x, s)
 
 
-_pool = box_downsample
-
 
 def downsample(out: RenderOutput, s: int) -> RenderOutput:
     """One view rendered at s x resolution -> the image at 1x: rgb, alpha, depth and normal area-averaged over each
@@ -115,10 +113,10 @@ def downsample(out: RenderOutput, s: int) -> RenderOutput:
     if s == 1:
         return out
     return RenderOutput(
-        rgb=_pool(out.rgb, s),
-        alpha=_pool(out.alpha[..., None], s)[..., 0],
-        depth=_pool(out.depth[..., None], s)[..., 0],
-        normal=_pool(out.normal, s),
+        rgb=box_downsample(out.rgb, s),
+        alpha=box_downsample(out.alpha[..., None], s)[..., 0],
+        depth=box_downsample(out.depth[..., None], s)[..., 0],
+        normal=box_downsample(out.normal, s),
         max_weight=out.max_weight,
         face_id=out.face_id[s // 2 :: s, s // 2 :: s].contiguous(),
         pairs_evaluated=out.pairs_evaluated,

@@ -111,8 +111,6 @@ class Trainer:
         self.background = torch.tensor(cfg.background, dtype=torch.float32, device=self.device)
         # length scale of position learning rates: the camera spread, or the content size when cameras barely move
         self.extent = 1.1 * max(data.scene_radius, data.bounds_radius)
-        first = data.cameras[data.train_indices[0]] if len(data.train_indices) else data.cameras[0]
-        self._train_size = (first.width, first.height)  # the coarse steps' pricing in --minutes planning
         self.generator = torch.Generator().manual_seed(cfg.seed)
         self.lr_scale = 1.0
         self.rollbacks = 0
@@ -581,8 +579,8 @@ class Trainer:
         a 10% margin covers growth in face count, and later re-plans correct what is left."""
         budget = self.cfg.minutes * 60.0 - elapsed_s
         p0 = self.clock.p(self.step)
-        cost = functools.partial(schedules.pixel_cost, cfg=self.cfg, width=self._train_size[0],
-                                 height=self._train_size[1])
+        cam = self.data.cameras[self.data.train_indices[0]]  # (the coarse steps' pricing: their image size)
+        cost = functools.partial(schedules.pixel_cost, cfg=self.cfg, width=cam.width, height=cam.height)
         bounds = sorted({p0, 1.0, *[b for b in (self.cfg.supersample_2x_from, self.cfg.supersample_4x_from,
                                                 self.cfg.coarse_until) if p0 < b < 1.0]})
         rel_cost = sum((b - a) * cost(a) / cost(p0) for a, b in zip(bounds, bounds[1:])) / max(1.0 - p0, 1e-9)
