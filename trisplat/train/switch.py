@@ -104,7 +104,9 @@ class SurfaceConfig:
     extract_surface's cavity test; an unseen underside that faces away into open space is kept, closing the object.
     'drop' drops every unseen face (a room scan: the back of its walls faces outwards, into nothing).
     'drop_but_bridges' drops them all but the hidden sides that join two pieces of the seen surface: a table top's
-    underside, never seen, faces the floor and joins the top to its legs (hidden_bridges). 'drop_but_joins' keeps
+    underside, never seen, faces the floor and joins the top to its legs (hidden_bridges); then each piece still
+    apart is joined to the main one by the hidden surface nearest to it, within its own size
+    (trisplat.mesh.hidden_join: a cloth-draped table's unseen skirt down to the floor). 'drop_but_joins' keeps
     every group of unseen faces that joins two seen pieces, whatever it faces (the contracted fusion of a whole scene:
     the unseen foot of a stool between its seen sides and the floor)."""
     hidden_side_reach: float = 1.0
@@ -795,6 +797,17 @@ def soup_to_surface(scene: TriangleScene, cameras: Sequence, render: Callable[[i
                 drop = unseen_faces(world, faces, cameras, depths, space.tolerance(world, trunc_vox),
                                     enclosed_only=config.unseen_faces == "drop_enclosed", bridge_reach=reach,
                                     min_piece=config.min_component_fraction)
+                if config.unseen_faces == "drop_but_bridges":
+                    from trisplat.mesh.hidden_join import join_through_hidden
+
+                    extra, joined = join_through_hidden(world, faces, drop, config.min_component_fraction,
+                                                        ground=getattr(space, "ground", None))
+                    drop &= ~extra
+                    if joined:
+                        rep.notes.append(f"{len(joined)} pieces standing apart joined through the hidden surface "
+                                         f"nearest to them ({int(extra.sum())} hidden faces kept): " + "; ".join(
+                                             f"{j['faces']} faces, {j['distance']:.3g} away{' on the floor' if j['floor'] else ''}"
+                                             for j in joined))
                 faces = faces[~drop]
                 del world
                 if len(faces) == 0:
