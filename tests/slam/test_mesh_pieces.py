@@ -1,5 +1,6 @@
 """SLAM's mesh keeps a room's separate pieces down to --slam.mesh-min-piece of the largest (chairs standing apart
-from the floor in the fused surface), where the training switch drops pieces below 2% as floaters."""
+from the floor in the fused surface), where the training switch drops pieces below 2% as floaters; its unseen space
+is solid deeper (--slam.mesh-unseen-depth)."""
 from __future__ import annotations
 
 import numpy as np
@@ -51,10 +52,13 @@ def test_slam_mesh_uses_its_own_piece_fraction(monkeypatch, rgbd_capture):
     stream = open_stream(rgbd_capture)
     rgb, depth = load_frame(stream, 0, 1)
     kf = Keyframe(0, torch.from_numpy(rgb), torch.from_numpy(depth), np.eye(4))
-    for frac in (0.01, 0.005):
+    for frac, depth in ((0.01, 0.08), (0.005, 0.2)):
         with pytest.raises(RuntimeError, match="stop here"):
-            map_surface(SlamMap.empty(), [kf], stream, SlamConfig(downscale=1, mesh_min_piece=frac), lambda *a, **k: None)
+            map_surface(SlamMap.empty(), [kf], stream, SlamConfig(downscale=1, mesh_min_piece=frac,
+                                                                  mesh_unseen_depth=depth), lambda *a, **k: None)
         assert seen["config"].min_component_fraction == frac and seen["config"].unseen_faces == "drop_but_bridges"
+        assert seen["config"].max_depth_fraction == depth  # (training's objects keep theirs)
+    assert SlamConfig().mesh_unseen_depth > switch.SurfaceConfig().max_depth_fraction
     assert SlamConfig().mesh_min_piece == 0.01 < switch.SurfaceConfig().min_component_fraction
 
 
