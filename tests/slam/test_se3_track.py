@@ -216,9 +216,11 @@ def test_dense_tracker_normal_equations_kernel_matches_the_numpy_reference():
     grey = 0.5 + 0.3 * np.sin(u / 10) * np.cos(v / 13) + 0.05 * rng.standard_normal((H, W))
     obs_depth = depth + 0.02 * rng.standard_normal((H, W)) * (depth > 0)  # residuals on both sides of Huber's k
     rgb = np.repeat(grey[..., None], 3, axis=2)
-    for photo_flat in (False, True):
+    for photo_flat, z2, mode in ((False, 0.0, "projective"), (True, 0.0, "projective"), (False, 1.0, "projective"),
+                                 (True, 0.5, "projective"), (False, 0.0, "point_to_plane"),
+                                 (True, 1.0, "point_to_plane")):
         obs_rgb = np.full_like(rgb, 0.4) if photo_flat else rgb[:, ::-1] * 0.9 + 0.05
-        cfg = TrackConfig(outlier_depth=0.05)
+        cfg = TrackConfig(outlier_depth=0.05, depth_z2=z2, depth_residual=mode)
         L = _make_level(rgb, depth, depth > 0, obs_rgb, obs_depth, K, cfg)
         assert L.photo is not photo_flat
         T = exp_se3(torch.tensor([0.03, -0.02, 0.01, 0.02, -0.01, 0.015], dtype=torch.float64)).numpy()
@@ -229,6 +231,75 @@ def test_dense_tracker_normal_equations_kernel_matches_the_numpy_reference():
             assert c == pytest.approx(c_ref, rel=1e-9)
             np.testing.assert_allclose(Hk, H_ref, rtol=1e-9, atol=1e-9 * np.abs(H_ref).max())
             np.testing.assert_allclose(gk, g_ref, rtol=1e-9, atol=1e-9 * np.abs(g_ref).max())
+            if z2 or mode != "projective":  # not the default's equations (z2: the points at ~2 m)
+                L0 = _make_level(rgb, depth, depth > 0, obs_rgb, obs_depth, K, TrackConfig(outlier_depth=0.05))
+                c0, _, H0, _ = _normal_equations(L0, T, TrackConfig(outlier_depth=0.05), w_photo)
+                assert abs(c - c0) > 0.05 * c0 and not np.allclose(Hk, H0, rtol=0.05)
+
+
+def test_depth_normals_of_a_tilted_plane():
+    from trisplat.slam.track import _edges, depth_normals
+
+    H, W = 40, 50
+    K = np.array([[60.0, 0, 25.0], [0, 60.0, 20.0], [0, 0, 1]])
+    n_true = np.array([0.3, -0.2, -1.0])
+    n_true /= np.linalg.norm(n_true)
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    ray = np.stack([(u + 0.5 - 25.0) / 60.0, (v + 0.5 - 20.0) / 60.0, np.ones_like(u)], -1)
+    depth = -2.0 / (ray @ n_true)  # the plane n . P = 2 (facing the camera: n . P < 0 means n_true points back)
+    depth[10, 10] = 0.0  # a hole: its 4 neighbours are depth edges, so no normal within 2 steps of it
+    n = depth_normals(depth, _edges(depth, 0.05), K)
+    inner = np.zeros((H, W), bool)
+    inner[1:-1, 1:-1] = True
+    inner &= np.abs(v - 10) + np.abs(u - 10) > 2
+    np.testing.assert_allclose(n[inner], np.broadcast_to(n_true, n[inner].shape), atol=1e-9)
+    assert not n[~inner].any()
+
+
+def test_point_to_plane_residual_is_the_distance_to_the_observed_plane():
+    """A map of a wall seen at a slant, moved 1 cm off the wall along its normal: the point-to-plane residual is
+    that 1 cm at every pixel; the projective depth residual, along the camera's axis, is larger the more the view
+    grazes the wall (here about 2x)."""
+    from trisplat.slam.track import _make_level, _residuals
+
+    H, W = 40, 50
+    K = np.array([[60.0, 0, 25.0], [0, 60.0, 20.0], [0, 0, 1]])
+    n = np.array([np.sin(np.radians(60)), 0.0, -np.cos(np.radians(60))])  # the wall turned 60 degrees
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    ray = np.stack([(u + 0.5 - 25.0) / 60.0, (v + 0.5 - 20.0) / 60.0, np.ones_like(u)], -1)
+    depth = -2.0 / (ray @ n)
+    rgb = np.repeat((0.5 + 0.2 * np.sin(u / 5))[..., None], 3, axis=2)
+    T = np.eye(4)
+    T[:3, 3] = -0.01 * n  # 1 cm towards the camera, off the observed plane
+    out = {}
+    for mode in ("projective", "point_to_plane"):
+        cfg = TrackConfig(depth_residual=mode)
+        L = _make_level(rgb, depth, depth > 0, rgb, depth, K, cfg)
+        out[mode] = np.abs(_residuals(L, T, cfg)["rD"])
+    assert len(out["point_to_plane"]) > 0.7 * len(out["projective"]) > 500
+    np.testing.assert_allclose(out["point_to_plane"], 0.01, rtol=0.05)  # (bilinear depth of a slanted plane)
+    assert np.median(out["projective"]) > 1.5 * 0.01
+    # on a plane the observed point slides along the plane as the map point moves, so the Jacobian that holds the
+    # correspondence is the residual's derivative: central differences of exp(xi) T
+    cfg = TrackConfig(depth_residual="point_to_plane")
+    L = _make_level(rgb, depth, depth > 0, rgb, depth, K, cfg)
+    o = _residuals(L, T, cfg)
+    for k in range(6):
+        e = np.zeros(6)
+        e[k] = 1e-5
+        rp = _residuals(L, exp_se3(torch.as_tensor(e)).numpy() @ T, cfg)
+        rm = _residuals(L, exp_se3(torch.as_tensor(-e)).numpy() @ T, cfg)
+        assert rp["n"] == rm["n"] == o["n"]
+        np.testing.assert_allclose((rp["rD"] - rm["rD"]) / 2e-5, o["JD"][:, k], atol=0.05 * np.abs(o["JD"]).max())  # (bilinear depth: ~3%)
+
+
+def test_depth_scale_grows_with_the_square_of_depth():
+    from trisplat.slam.track import depth_scale
+
+    z = np.array([0.5, 1.0, 2.0, 3.0])
+    np.testing.assert_allclose(depth_scale(z, TrackConfig(depth_sigma=0.01)), 0.01)
+    np.testing.assert_allclose(depth_scale(z, TrackConfig(depth_sigma=0.01, depth_z2=1.0)), 0.01 * z * z)
+    np.testing.assert_allclose(depth_scale(z, TrackConfig(depth_sigma=0.01, depth_z2=0.5)), 0.01 * (0.5 + 0.5 * z * z))
 
 
 def test_dense_tracker_coverage_kernel_matches_the_numpy_reference():

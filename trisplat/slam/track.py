@@ -34,7 +34,17 @@ class TrackConfig:
     photo_sigma: float = 0.05
     """'dense': scale of a photometric residual (grey level in [0,1]): residuals are divided by it ..."""
     depth_sigma: float = 0.01
-    """... and of a depth residual (metres), so both terms are unitless in the normal equations"""
+    """... and of a depth residual (metres) at 1 m, so both terms are unitless in the normal equations"""
+    depth_residual: str = "projective"
+    """'dense': the depth term. 'projective': D_obs(pi(T X)) - (T X)_z, along the observed camera's axis;
+    'point_to_plane': n . (P_obs - T X), the distance from the moved map point to the plane of the observed point
+    P_obs (the observed depth at pi(T X) on the same ray) with the observation's normal n there (KinectFusion's and
+    Open3D's ICP term): equal to the projective residual times (n . T X) / (T X)_z, so it shrinks where the view
+    grazes the surface; the correspondence is held fixed in its Jacobian -[n, (T X) x n]"""
+    depth_z2: float = 0.0
+    """'dense': how a depth residual's scale grows with depth z (metres): depth_sigma x (1 - depth_z2 + depth_z2 z^2).
+    0: the same at every depth; 1: with the square of the depth, as a structured-light or stereo sensor's noise
+    (Kinect v1: about 1.9 mm x z^2 beyond 1 m)"""
     huber: float = 1.0
     """'dense': Huber threshold of the scaled residuals (weights 1 below, huber/|r| above)"""
     depth_edge: float = 0.05
@@ -253,6 +263,7 @@ class _Level:
     photo: bool  # the photometric term is used (the observation is not flat, e.g. a black frame)
     n_valid: int  # valid observed depth pixels
     Xall: np.ndarray  # [M,3] every covered map pixel's point, depth edges included (coverage)
+    No: np.ndarray  # [h,w,3] the observation's normals (point_to_plane; zero where unknown), else [1,1,3] zeros
 
 
 def _make_level(rgb_r, surf_r, ok_r, rgb_o, depth_o, K, cfg: TrackConfig) -> _Level:
@@ -267,8 +278,29 @@ def _make_level(rgb_r, surf_r, ok_r, rgb_o, depth_o, K, cfg: TrackConfig) -> _Le
     Do = depth_o.astype(np.float64)
     gy, gx = np.gradient(Io)
     dy, dx = np.gradient(Do)
-    return _Level(X, _grey(rgb_r)[v, u].astype(np.float64), Io, (gx, gy), Do, (dx, dy), _edges(Do, cfg.depth_edge),
-                  K, float(Io.std()) > 1e-3, int((Do > 0).sum()), points(ok_r & (surf_r > 0))[0])
+    bad = _edges(Do, cfg.depth_edge)
+    No = depth_normals(Do, bad, K) if cfg.depth_residual == "point_to_plane" else np.zeros((1, 1, 3))
+    return _Level(X, _grey(rgb_r)[v, u].astype(np.float64), Io, (gx, gy), Do, (dx, dy), bad,
+                  K, float(Io.std()) > 1e-3, int((Do > 0).sum()), points(ok_r & (surf_r > 0))[0], No)
+
+
+def depth_normals(depth: np.ndarray, bad: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """[h,w,3] unit normals of a depth map's surface (camera frame, facing the camera: n . P < 0), from the central
+    differences of the back-projected points; zero where the pixel or one of its 4 neighbours is `bad` (invalid
+    depth, a depth edge) or on the border."""
+    h, w = depth.shape
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    P = np.stack([(u + 0.5 - K[0, 2]) / K[0, 0] * depth, (v + 0.5 - K[1, 2]) / K[1, 1] * depth, depth], -1)
+    n = np.zeros((h, w, 3))
+    du = P[1:-1, 2:] - P[1:-1, :-2]
+    dv = P[2:, 1:-1] - P[:-2, 1:-1]
+    c = np.cross(du, dv)
+    norm = np.linalg.norm(c, axis=-1, keepdims=True)
+    c = np.where(norm > 0, c / np.maximum(norm, 1e-300), 0.0)
+    c *= -np.sign(np.sum(c * P[1:-1, 1:-1], -1, keepdims=True) + 1e-300)  # towards the camera
+    ok = ~(bad[1:-1, 1:-1] | bad[1:-1, 2:] | bad[1:-1, :-2] | bad[2:, 1:-1] | bad[:-2, 1:-1])
+    n[1:-1, 1:-1] = np.where(ok[..., None], c, 0.0)
+    return n
 
 
 def _coverage(L: _Level, T: np.ndarray, outlier: float) -> tuple[float, float]:
@@ -333,9 +365,19 @@ def _residuals(L: _Level, T: np.ndarray, cfg: TrackConfig) -> dict:
     Ju = np.stack([fx * iz, zero, -fx * X * iz * iz, -fx * X * Y * iz * iz, fx * (1 + X * X * iz * iz), -fx * Y * iz], 1)
     Jv = np.stack([zero, fy * iz, -fy * Y * iz * iz, -fy * (1 + Y * Y * iz * iz), fy * X * Y * iz * iz, fy * X * iz], 1)
     Jz = np.stack([zero, zero, np.ones_like(iz), Y, -X, zero], 1)
-    gx, gy = _bilinear(L.gDo[0], x, y)[0], _bilinear(L.gDo[1], x, y)[0]
-    out = {"rD": rD, "JD": gx[:, None] * Ju + gy[:, None] * Jv - Jz, "rI": None, "JI": None, "n": len(idx),
-           "inside": len(inside)}
+    if cfg.depth_residual == "point_to_plane":
+        # the observation's normal at the nearest pixel; points where it is unknown are left out
+        n = L.No[np.floor(y + 0.5).astype(np.int64), np.floor(x + 0.5).astype(np.int64)]
+        keep = np.any(n != 0, axis=1)
+        idx, x, y, rD, Qk, n = idx[keep], x[keep], y[keep], rD[keep], Qk[keep], n[keep]
+        Ju, Jv, Jz = Ju[keep], Jv[keep], Jz[keep]
+        nQ = np.sum(n * Qk, 1)
+        JD = -np.concatenate([n, np.cross(Qk, n)], 1)
+        rD = nQ * rD / Qk[:, 2]  # n . (P_obs - Q), P_obs = Q x D_obs / Q_z on the same ray
+    else:
+        gx, gy = _bilinear(L.gDo[0], x, y)[0], _bilinear(L.gDo[1], x, y)[0]
+        JD = gx[:, None] * Ju + gy[:, None] * Jv - Jz
+    out = {"rD": rD, "JD": JD, "rI": None, "JI": None, "n": len(idx), "z": Qk[:, 2], "inside": len(inside)}
     if L.photo:  # only where the depth agrees: occlusions differ in colour too
         out["rI"] = _bilinear(L.Io, x, y)[0] - L.Ir[idx]
         gx, gy = _bilinear(L.gIo[0], x, y)[0], _bilinear(L.gIo[1], x, y)[0]
@@ -343,11 +385,17 @@ def _residuals(L: _Level, T: np.ndarray, cfg: TrackConfig) -> dict:
     return out
 
 
+def depth_scale(z: np.ndarray, cfg: TrackConfig) -> np.ndarray:
+    """The scale (metres) of a depth residual at depth z (metres): depth_sigma x (1 - depth_z2 + depth_z2 z^2)."""
+    return cfg.depth_sigma * (1.0 - cfg.depth_z2 + cfg.depth_z2 * z * z)
+
+
 def _normal_equations_reference(L: _Level, T: np.ndarray, cfg: TrackConfig, w_photo: float):
     """(mean robust cost, points kept, H = J^T W J [6,6], g = J^T W r [6]) of the scaled, Huber-weighted residuals of
     `_residuals` at T, in numpy: the readable reference of track_kernels.normal_equations (the tests' oracle)."""
     o = _residuals(L, T, cfg)
-    terms = [(o["rD"] / cfg.depth_sigma, o["JD"] / cfg.depth_sigma, 1.0)]
+    ds = depth_scale(o["z"], cfg)[:, None]
+    terms = [(o["rD"] / ds[:, 0], o["JD"] / ds, 1.0)]
     if o["rI"] is not None:
         terms.append((o["rI"] / cfg.photo_sigma, o["JI"] / cfg.photo_sigma, w_photo))
     cost, H, g = 0.0, np.zeros((6, 6)), np.zeros(6)
@@ -366,7 +414,8 @@ def _normal_equations(L: _Level, T: np.ndarray, cfg: TrackConfig, w_photo: float
     kernel = normal_equations if len(L.X) >= SERIAL_BELOW else normal_equations_serial
     cost, n, H, g = kernel(L.X, L.Ir, L.Io, L.gIo[0], L.gIo[1], L.Do, L.gDo[0], L.gDo[1], L.Dbad, L.K,
                            np.ascontiguousarray(T, np.float64), float(cfg.outlier_depth), float(cfg.depth_sigma),
-                           float(cfg.photo_sigma), float(cfg.huber), float(w_photo), bool(L.photo))
+                           float(cfg.photo_sigma), float(cfg.huber), float(w_photo), bool(L.photo),
+                           float(cfg.depth_z2), L.No, cfg.depth_residual == "point_to_plane")
     return cost / max(1, n), int(n), H, g
 
 

@@ -39,9 +39,11 @@ def _add(H, g, J, r, w):  # pragma: no cover (compiled)
 
 @nb.njit(parallel=True, cache=True)
 def normal_equations(X, Ir, Io, gIx, gIy, Do, gDx, gDy, Dbad, K, T, outlier, depth_sigma, photo_sigma, huber,
-                     w_photo, photo):  # pragma: no cover (compiled)
+                     w_photo, photo, depth_z2, No, p2p):  # pragma: no cover (compiled)
     """(robust cost sum, points kept, H [6,6], g [6]) of the level's map points X [N,3] (guess camera frame) moved by
-    T [4,4] into the observation: see track._residuals for which points are kept and the residuals' definitions."""
+    T [4,4] into the observation: see track._residuals for which points are kept and the residuals' definitions; a
+    depth residual at depth z is scaled by depth_sigma x (1 - depth_z2 + depth_z2 z^2) (track.depth_scale); p2p: the
+    point-to-plane depth term with the observation's normals No [h,w,3] (TrackConfig.depth_residual)."""
     n_pts = X.shape[0]
     h, w = Do.shape
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
@@ -90,15 +92,32 @@ def normal_equations(X, Ir, Io, gIx, gIy, Do, gDx, gDy, Dbad, K, T, outlier, dep
             Jv[3] = -fy * (1 + qy * qy * iz * iz)
             Jv[4] = fy * qx * qy * iz * iz
             Jv[5] = fy * qx * iz
-            gx = _bilinear(gDx, x, y, x0, y0)
-            gy = _bilinear(gDy, x, y, x0, y0)
-            for a in range(6):
-                J[a] = (gx * Ju[a] + gy * Jv[a]) / depth_sigma
-            # minus d z / d xi = e_z . [I | -Q^] = (0, 0, 1, qy, -qx, 0)
-            J[2] -= 1.0 / depth_sigma
-            J[3] -= qy / depth_sigma
-            J[4] += qx / depth_sigma
-            r = rD / depth_sigma
+            ds = depth_sigma * (1.0 - depth_z2 + depth_z2 * z * z)
+            if p2p:
+                xn = int(np.floor(x + 0.5))
+                yn = int(np.floor(y + 0.5))
+                nx, ny, nz = No[yn, xn, 0], No[yn, xn, 1], No[yn, xn, 2]
+                if nx == 0.0 and ny == 0.0 and nz == 0.0:
+                    cnt -= 1
+                    continue
+                # n . (P_obs - Q), P_obs = Q D_obs / Q_z; its Jacobian -[n, Q x n] (the correspondence held)
+                r = (nx * qx + ny * qy + nz * z) * rD / z / ds
+                J[0] = -nx / ds
+                J[1] = -ny / ds
+                J[2] = -nz / ds
+                J[3] = -(qy * nz - z * ny) / ds
+                J[4] = -(z * nx - qx * nz) / ds
+                J[5] = -(qx * ny - qy * nx) / ds
+            else:
+                gx = _bilinear(gDx, x, y, x0, y0)
+                gy = _bilinear(gDy, x, y, x0, y0)
+                for a in range(6):
+                    J[a] = (gx * Ju[a] + gy * Jv[a]) / ds
+                # minus d z / d xi = e_z . [I | -Q^] = (0, 0, 1, qy, -qx, 0)
+                J[2] -= 1.0 / ds
+                J[3] -= qy / ds
+                J[4] += qx / ds
+                r = rD / ds
             cst, wt = _huber(r, huber)
             cost += cst
             _add(Hc, gc, J, r, wt)
