@@ -8,6 +8,7 @@ renderer's exact position gradients through exp_se3 (`trisplat.slam.se3`), not a
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 import torch
@@ -35,7 +36,7 @@ class TrackConfig:
     """'dense': scale of a photometric residual (grey level in [0,1]): residuals are divided by it ..."""
     depth_sigma: float = 0.01
     """... and of a depth residual (metres) at 1 m, so both terms are unitless in the normal equations"""
-    depth_residual: str = "projective"
+    depth_residual: Literal["projective", "point_to_plane"] = "projective"
     """'dense': the depth term. 'projective': D_obs(pi(T X)) - (T X)_z, along the observed camera's axis;
     'point_to_plane': n . (P_obs - T X), the distance from the moved map point to the plane of the observed point
     P_obs (the observed depth at pi(T X) on the same ray) with the observation's normal n there (KinectFusion's and
