@@ -220,7 +220,7 @@ def test_dense_tracker_normal_equations_kernel_matches_the_numpy_reference():
                                  (True, 0.5, "projective"), (False, 0.0, "point_to_plane"),
                                  (True, 1.0, "point_to_plane")):
         obs_rgb = np.full_like(rgb, 0.4) if photo_flat else rgb[:, ::-1] * 0.9 + 0.05
-        cfg = TrackConfig(outlier_depth=0.05, depth_z2=z2, depth_residual=mode)
+        cfg = TrackConfig(outlier_depth=0.05, depth_noise=z2, depth_residual=mode)
         L = _make_level(rgb, depth, depth > 0, obs_rgb, obs_depth, K, cfg)
         assert L.photo is not photo_flat
         T = exp_se3(torch.tensor([0.03, -0.02, 0.01, 0.02, -0.01, 0.015], dtype=torch.float64)).numpy()
@@ -290,16 +290,20 @@ def test_point_to_plane_residual_is_the_distance_to_the_observed_plane():
         rp = _residuals(L, exp_se3(torch.as_tensor(e)).numpy() @ T, cfg)
         rm = _residuals(L, exp_se3(torch.as_tensor(-e)).numpy() @ T, cfg)
         assert rp["n"] == rm["n"] == o["n"]
-        np.testing.assert_allclose((rp["rD"] - rm["rD"]) / 2e-5, o["JD"][:, k], atol=0.05 * np.abs(o["JD"]).max())  # (bilinear depth: ~3%)
+        tol = 0.05 * np.abs(o["JD"]).max()  # (the bilinear depth of a slanted plane: ~3%)
+        np.testing.assert_allclose((rp["rD"] - rm["rD"]) / 2e-5, o["JD"][:, k], atol=tol)
 
 
-def test_depth_scale_grows_with_the_square_of_depth():
+def test_depth_scale_follows_the_sensor_noise_model():
     from trisplat.slam.track import depth_scale
 
     z = np.array([0.5, 1.0, 2.0, 3.0])
     np.testing.assert_allclose(depth_scale(z, TrackConfig(depth_sigma=0.01)), 0.01)
-    np.testing.assert_allclose(depth_scale(z, TrackConfig(depth_sigma=0.01, depth_z2=1.0)), 0.01 * z * z)
-    np.testing.assert_allclose(depth_scale(z, TrackConfig(depth_sigma=0.01, depth_z2=0.5)), 0.01 * (0.5 + 0.5 * z * z))
+    kinect = (0.0012 + 0.0019 * (z - 0.4) ** 2) / (0.0012 + 0.0019 * 0.36)  # 1 at 1 m
+    np.testing.assert_allclose(depth_scale(z, TrackConfig(depth_sigma=0.01, depth_noise=1.0)), 0.01 * kinect)
+    np.testing.assert_allclose(depth_scale(z, TrackConfig(depth_sigma=0.01, depth_noise=0.5)),
+                               0.01 * (0.5 + 0.5 * kinect))
+    assert kinect[2] == pytest.approx(3.22, abs=0.01) and kinect[3] == pytest.approx(7.45, abs=0.01)
 
 
 def test_dense_tracker_coverage_kernel_matches_the_numpy_reference():

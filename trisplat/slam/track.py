@@ -15,7 +15,14 @@ import torch
 
 from trisplat.render.rasterize import rasterize
 from trisplat.slam.se3 import exp_se3
-from trisplat.slam.track_kernels import SERIAL_BELOW, normal_equations, normal_equations_serial
+from trisplat.slam.track_kernels import (
+    NOISE_A,
+    NOISE_B,
+    NOISE_Z0,
+    SERIAL_BELOW,
+    normal_equations,
+    normal_equations_serial,
+)
 from trisplat.train.losses import photometric
 
 IDENTITY = torch.eye(4, dtype=torch.float64)
@@ -42,10 +49,11 @@ class TrackConfig:
     P_obs (the observed depth at pi(T X) on the same ray) with the observation's normal n there (KinectFusion's and
     Open3D's ICP term): equal to the projective residual times (n . T X) / (T X)_z, so it shrinks where the view
     grazes the surface; the correspondence is held fixed in its Jacobian -[n, (T X) x n]"""
-    depth_z2: float = 0.0
-    """'dense': how a depth residual's scale grows with depth z (metres): depth_sigma x (1 - depth_z2 + depth_z2 z^2).
-    0: the same at every depth; 1: with the square of the depth, as a structured-light or stereo sensor's noise
-    (Kinect v1: about 1.9 mm x z^2 beyond 1 m)"""
+    depth_noise: float = 0.0
+    """'dense': how much a depth residual's scale follows a structured-light sensor's noise with depth z (metres):
+    depth_sigma x (1 - depth_noise + depth_noise x q(z)), q(z) = (0.0012 + 0.0019 (z - 0.4)^2) / q(1) (Kinect v1's
+    axial noise, Nguyen, Izadi and Lovell 2012: 1.9 mm at 1 m, 6.1 mm at 2 m, 14 mm at 3 m). 0: the same scale at
+    every depth"""
     huber: float = 1.0
     """'dense': Huber threshold of the scaled residuals (weights 1 below, huber/|r| above)"""
     depth_edge: float = 0.05
@@ -387,8 +395,9 @@ def _residuals(L: _Level, T: np.ndarray, cfg: TrackConfig) -> dict:
 
 
 def depth_scale(z: np.ndarray, cfg: TrackConfig) -> np.ndarray:
-    """The scale (metres) of a depth residual at depth z (metres): depth_sigma x (1 - depth_z2 + depth_z2 z^2)."""
-    return cfg.depth_sigma * (1.0 - cfg.depth_z2 + cfg.depth_z2 * z * z)
+    """The scale (metres) of a depth residual at depth z (metres): TrackConfig.depth_noise."""
+    q = (NOISE_A + NOISE_B * (z - NOISE_Z0) ** 2) / (NOISE_A + NOISE_B * (1.0 - NOISE_Z0) ** 2)
+    return cfg.depth_sigma * (1.0 - cfg.depth_noise + cfg.depth_noise * q)
 
 
 def _normal_equations_reference(L: _Level, T: np.ndarray, cfg: TrackConfig, w_photo: float):
@@ -416,7 +425,7 @@ def _normal_equations(L: _Level, T: np.ndarray, cfg: TrackConfig, w_photo: float
     cost, n, H, g = kernel(L.X, L.Ir, L.Io, L.gIo[0], L.gIo[1], L.Do, L.gDo[0], L.gDo[1], L.Dbad, L.K,
                            np.ascontiguousarray(T, np.float64), float(cfg.outlier_depth), float(cfg.depth_sigma),
                            float(cfg.photo_sigma), float(cfg.huber), float(w_photo), bool(L.photo),
-                           float(cfg.depth_z2), L.No, cfg.depth_residual == "point_to_plane")
+                           float(cfg.depth_noise), L.No, cfg.depth_residual == "point_to_plane")
     return cost / max(1, n), int(n), H, g
 
 

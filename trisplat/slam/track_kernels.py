@@ -9,6 +9,7 @@ import numba as nb
 import numpy as np
 
 CHUNK = 4096  # points per parallel work item (each its own partial sums)
+NOISE_A, NOISE_B, NOISE_Z0 = 0.0012, 0.0019, 0.4  # Kinect v1's axial depth noise (track.depth_scale)
 
 
 @nb.njit(inline="always")
@@ -39,10 +40,10 @@ def _add(H, g, J, r, w):  # pragma: no cover (compiled)
 
 @nb.njit(parallel=True, cache=True)
 def normal_equations(X, Ir, Io, gIx, gIy, Do, gDx, gDy, Dbad, K, T, outlier, depth_sigma, photo_sigma, huber,
-                     w_photo, photo, depth_z2, No, p2p):  # pragma: no cover (compiled)
+                     w_photo, photo, depth_noise, No, p2p):  # pragma: no cover (compiled)
     """(robust cost sum, points kept, H [6,6], g [6]) of the level's map points X [N,3] (guess camera frame) moved by
     T [4,4] into the observation: see track._residuals for which points are kept and the residuals' definitions; a
-    depth residual at depth z is scaled by depth_sigma x (1 - depth_z2 + depth_z2 z^2) (track.depth_scale); p2p: the
+    depth residual at depth z is scaled by track.depth_scale (TrackConfig.depth_noise); p2p: the
     point-to-plane depth term with the observation's normals No [h,w,3] (TrackConfig.depth_residual)."""
     n_pts = X.shape[0]
     h, w = Do.shape
@@ -92,7 +93,8 @@ def normal_equations(X, Ir, Io, gIx, gIy, Do, gDx, gDy, Dbad, K, T, outlier, dep
             Jv[3] = -fy * (1 + qy * qy * iz * iz)
             Jv[4] = fy * qx * qy * iz * iz
             Jv[5] = fy * qx * iz
-            ds = depth_sigma * (1.0 - depth_z2 + depth_z2 * z * z)
+            ds = depth_sigma * (1.0 - depth_noise + depth_noise * (NOISE_A + NOISE_B * (z - NOISE_Z0) ** 2)
+                                / (NOISE_A + NOISE_B * (1.0 - NOISE_Z0) ** 2))
             if p2p:
                 xn = int(np.floor(x + 0.5))
                 yn = int(np.floor(y + 0.5))
