@@ -201,3 +201,28 @@ def test_weld_near_pieces_joins_what_nearly_touches_and_nothing_else():
     # nothing within reach: nothing changes
     v2, f2, joins2 = weld_near_pieces(m.vertices, m.faces, 0.001)
     assert joins2 == 0 and np.array_equal(f2, m.faces)
+
+
+def test_simplify_parts_decimates_one_part_and_keeps_the_border_joined():
+    from trisplat.mesh.cleanup import face_components, simplify_parts
+
+    # a 40 x 40 grid of a gently curved sheet (2 x 1600 faces): the left half one part, the right half another
+    n = 40
+    ys, xs = np.mgrid[0:n + 1, 0:n + 1].astype(np.float64) / n
+    v = np.stack([xs, ys, 0.05 * np.sin(3 * xs) * np.cos(2 * ys)], -1).reshape(-1, 3)
+    i = np.arange(n)[:, None] * (n + 1) + np.arange(n)[None, :]
+    f = np.concatenate([np.stack([i, i + 1, i + n + 1], -1).reshape(-1, 3),
+                        np.stack([i + 1, i + n + 2, i + n + 1], -1).reshape(-1, 3)])
+    part = (v[f].mean(1)[:, 0] > 0.5).astype(np.int64)
+    v2, f2 = simplify_parts(v, f, part, [int((part == 0).sum()), 100])
+    right = v2[f2].mean(1)[:, 0] > 0.5
+    assert (~right).sum() == (part == 0).sum()  # the left part as it was
+    assert 60 <= right.sum() <= 200  # the right part decimated (1,600 faces; its 41 locked border vertices hold ~2x)
+    n_pieces, _ = face_components(f2, len(v2))
+    assert n_pieces == 1  # joined again along the locked border
+    # the border's vertices (x = 0.5) are all still there, at their positions
+    border = v[np.abs(v[:, 0] - 0.5) < 1e-9]
+    assert len(border) == n + 1 and all(np.isclose(v2, b).all(1).any() for b in border)
+    # a part with a budget over its faces is left alone; faces of parts without a budget are dropped
+    v3, f3 = simplify_parts(v, f, part, [10_000])
+    assert len(f3) == (part == 0).sum()

@@ -329,3 +329,35 @@ def closest_points_on_triangles(p: np.ndarray, tri: np.ndarray) -> tuple[np.ndar
         q = np.where(cases[k][:, None], cases[k + 1], q)
     q = np.where(np.isfinite(q), q, a)  # degenerate triangles: their first corner
     return q, np.linalg.norm(p - q, axis=1)
+
+
+def simplify_parts(vertices: np.ndarray, faces: np.ndarray, part: np.ndarray, budgets) -> tuple[np.ndarray, np.ndarray]:
+    """Each part of a mesh decimated to its own face budget, its borders locked (pyfqmr's quadric decimation with
+    preserve_border), then the parts joined again: a locked border keeps its vertices' positions exactly, so the same
+    position is the same vertex again. part: int [F], the part of each face; budgets: [P] faces of parts 0..P-1 (a part
+    at or under its budget is left as it is; faces of other parts are dropped). Returns vertices [V',3] float64,
+    faces [F',3] int64."""
+    import pyfqmr
+
+    vertices = np.asarray(vertices, np.float64)
+    faces = np.asarray(faces, np.int64)
+    parts_v, parts_f, offset = [], [], 0
+    for r, budget in enumerate(budgets):
+        sel = part == r
+        if not sel.any():
+            continue
+        used, local = np.unique(faces[sel].reshape(-1), return_inverse=True)
+        v, f = vertices[used], local.reshape(-1, 3)
+        if len(f) > budget:
+            simp = pyfqmr.Simplify()
+            simp.setMesh(v, f.astype(np.int32))
+            simp.simplify_mesh(target_count=int(budget), aggressiveness=7, preserve_border=True, verbose=False)
+            v, f, _ = simp.getMesh()
+        parts_v.append(np.asarray(v, np.float64))
+        parts_f.append(np.asarray(f, np.int64) + offset)
+        offset += len(v)
+    if not parts_v:
+        return np.zeros((0, 3)), np.zeros((0, 3), np.int64)
+    v, f = np.concatenate(parts_v), np.concatenate(parts_f)
+    _, first, inverse = np.unique(v, axis=0, return_index=True, return_inverse=True)
+    return v[first], inverse.reshape(-1)[f]

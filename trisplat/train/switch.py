@@ -34,6 +34,7 @@ REGION_BANDS = (0.0, 0.5, 1.0, 1.5, 2.0)  # contracted fusion: shells of the con
 # faces are decimated to their share of the training pixels (_ContractedSpace.reduce)
 MIN_REGION_SHARE = 0.02  # ... at least this share of the budget each
 GROUND_THICKNESS = 0.05  # contracted fusion: the closed floor's thickness below its plane (normalised units)
+HIDDEN_FACES = 0.1  # the hidden faces kept to join pieces (trisplat.mesh.hidden_join) are decimated to this share
 JOIN_VOXELS = 2.0  # contracted fusion: pieces of the surface closer than this (contracted voxels) are joined
 MIN_DEPTH_VOXELS = 3.0  # unseen space is solid at least this many voxels behind what was observed (a thinner shell
 # is breached by the noise of a coarse grid)
@@ -623,32 +624,14 @@ class _ContractedSpace:
         along them. The marching-cubes surface is closed, so those are its only borders."""
         if len(faces) <= PRE_DECIMATE * target:
             return verts, faces
-        import pyfqmr
+        from trisplat.mesh.cleanup import simplify_parts
 
         m = np.abs(verts[faces].mean(1)).max(1)
         region = np.searchsorted(REGION_BANDS, m, side="right") - 1
         share = np.maximum(self.pixel_share, MIN_REGION_SHARE)
         share /= share.sum()
-        parts_v, parts_f, offset = [], [], 0
-        for r in range(len(REGION_BANDS) - 1):
-            sel = region == r
-            if not sel.any():
-                continue
-            used, local = np.unique(faces[sel].reshape(-1), return_inverse=True)
-            v, f = verts[used], local.reshape(-1, 3)
-            budget = int(share[r] * PRE_DECIMATE * target)
-            if len(f) > budget:
-                simp = pyfqmr.Simplify()
-                simp.setMesh(v, f.astype(np.int32))
-                simp.simplify_mesh(target_count=budget, aggressiveness=7, preserve_border=True, verbose=False)
-                v, f, _ = simp.getMesh()
-            parts_v.append(np.asarray(v, np.float64))
-            parts_f.append(np.asarray(f, np.int64) + offset)
-            offset += len(v)
-        v, f = np.concatenate(parts_v), np.concatenate(parts_f)
-        # the locked borders kept their positions exactly: the same position is the same vertex again
-        _, first, inverse = np.unique(v, axis=0, return_index=True, return_inverse=True)
-        return v[first], inverse.reshape(-1)[f]
+        return simplify_parts(verts, faces, region, [int(share[r] * PRE_DECIMATE * target)
+                                                      for r in range(len(REGION_BANDS) - 1)])
 
     def decimate(self, verts, faces, target: int):
         """Quadric decimation to `target` faces (fast-simplification), in contracted coordinates."""
@@ -803,12 +786,20 @@ def soup_to_surface(scene: TriangleScene, cameras: Sequence, render: Callable[[i
                     extra, joined = join_through_hidden(world, faces, drop, config.min_component_fraction,
                                                         ground=getattr(space, "ground", None))
                     drop &= ~extra
-                    if joined:
-                        rep.notes.append(f"{len(joined)} pieces standing apart joined through the hidden surface "
-                                         f"nearest to them ({int(extra.sum())} hidden faces kept): " + "; ".join(
-                                             f"{j['faces']} faces, {j['distance']:.3g} away{' on the floor' if j['floor'] else ''}"
-                                             for j in joined))
                 faces = faces[~drop]
+                if config.unseen_faces == "drop_but_bridges" and joined:
+                    # the hidden faces kept to join pieces, decimated apart (their borders with the seen surface
+                    # locked) to HIDDEN_FACES of their number: the face budget goes to what the views see
+                    from trisplat.mesh.cleanup import simplify_parts
+
+                    n_hidden = int(extra.sum())
+                    verts, faces = simplify_parts(verts, faces, extra[~drop].astype(np.int64),
+                                                  [len(faces), max(int(HIDDEN_FACES * n_hidden), 1)])
+                    rep.notes.append(f"{len(joined)} pieces standing apart joined through the hidden surface "
+                                     f"nearest to them ({n_hidden} hidden faces, decimated to "
+                                     f"{int(HIDDEN_FACES * n_hidden)}): " + "; ".join(
+                                         f"{j['faces']} faces, {j['distance']:.3g} away"
+                                         f"{' on the floor' if j['floor'] else ''}" for j in joined))
                 del world
                 if len(faces) == 0:
                     raise ValueError("no view sees any part of the fused surface: nothing is left to fine-tune")
