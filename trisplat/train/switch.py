@@ -751,6 +751,7 @@ def soup_to_surface(scene: TriangleScene, cameras: Sequence, render: Callable[[i
                 rep.render_s += time.perf_counter() - t
                 yield d
 
+        join_note = None
         for attempt, trunc_vox in enumerate(truncations):
             t0 = time.perf_counter()
             render_s = rep.render_s
@@ -787,6 +788,7 @@ def soup_to_surface(scene: TriangleScene, cameras: Sequence, render: Callable[[i
                                                         ground=getattr(space, "ground", None))
                     drop &= ~extra
                 faces = faces[~drop]
+                join_note = None
                 if config.unseen_faces == "drop_but_bridges" and joined:
                     # the hidden faces kept to join pieces, decimated apart (their borders with the seen surface
                     # locked) to HIDDEN_FACES of their number: the face budget goes to what the views see
@@ -795,11 +797,10 @@ def soup_to_surface(scene: TriangleScene, cameras: Sequence, render: Callable[[i
                     n_hidden = int(extra.sum())
                     verts, faces = simplify_parts(verts, faces, extra[~drop].astype(np.int64),
                                                   [len(faces), max(int(HIDDEN_FACES * n_hidden), 1)])
-                    rep.notes.append(f"{len(joined)} pieces standing apart joined through the hidden surface "
-                                     f"nearest to them ({n_hidden} hidden faces, decimated to "
-                                     f"{int(HIDDEN_FACES * n_hidden)}): " + "; ".join(
-                                         f"{j['faces']} faces, {j['distance']:.3g} away"
-                                         f"{' on the floor' if j['floor'] else ''}" for j in joined))
+                    join_note = (f"{len(joined)} pieces standing apart joined through the hidden surface nearest "
+                                 f"to them ({n_hidden} hidden faces, decimated to {int(HIDDEN_FACES * n_hidden)}): "
+                                 + "; ".join(f"{j['faces']} faces, {j['distance']:.3g} away"
+                                             f"{' on the floor' if j['floor'] else ''}" for j in joined))
                 del world
                 if len(faces) == 0:
                     raise ValueError("no view sees any part of the fused surface: nothing is left to fine-tune")
@@ -820,6 +821,8 @@ def soup_to_surface(scene: TriangleScene, cameras: Sequence, render: Callable[[i
                              f"{100 * config.max_carved:.0f}%): fused again with {truncations[attempt + 1]:.1f}")
             if progress:
                 progress(rep.notes[-1])
+        if join_note:  # (of the last attempt)
+            rep.notes.append(join_note)
         if config.unseen_faces != "keep":
             rep.notes.append(f"{int(drop.sum())} of {len(drop)} faces no view saw dropped ({config.unseen_faces})")
         t0 = time.perf_counter()
