@@ -26,21 +26,17 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import dijkstra
 
 from trisplat.mesh.cleanup import face_components
+from trisplat.mesh.orient import edge_table
 
 SIZE_FACTOR = 1.0
 FLOOR_TOLERANCE = 0.05  # a vertex of the main piece this close to the floor plane is on the floor (world units)
 
 
 def _edge_graph(verts: np.ndarray, faces: np.ndarray) -> sp.csr_matrix:
-    """Symmetric sparse graph of the faces' edges, weighted by their length (each edge once)."""
-    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    e = np.unique(np.sort(e, axis=1), axis=0)
-    w = np.linalg.norm(verts[e[:, 0]] - verts[e[:, 1]], axis=1)
-    w = np.maximum(w, 1e-12)  # (a zero weight would read as no edge)
-    n = len(verts)
-    g = sp.coo_matrix((np.concatenate([w, w]), (np.concatenate([e[:, 0], e[:, 1]]), np.concatenate([e[:, 1],
-                      e[:, 0]]))), shape=(n, n))
-    return g.tocsr()
+    """Sparse graph of the faces' edges (each once, a < b), weighted by their length (dijkstra reads it undirected)."""
+    e = edge_table(faces).edges
+    w = np.maximum(np.linalg.norm(verts[e[:, 0]] - verts[e[:, 1]], axis=1), 1e-12)  # (a zero weight reads as no edge)
+    return sp.csr_matrix((w, (e[:, 0], e[:, 1])), shape=(len(verts), len(verts)))
 
 
 def join_through_hidden(verts: np.ndarray, faces: np.ndarray, hidden: np.ndarray, min_piece: float = 0.0,
