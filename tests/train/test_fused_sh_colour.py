@@ -5,6 +5,7 @@ the joined table."""
 from __future__ import annotations
 
 import numba
+import numpy as np
 import pytest
 import torch
 
@@ -85,3 +86,70 @@ def test_a_render_from_the_colours_equals_the_render_of_the_joined_table(linear_
     for a, b in zip(*grads):
         assert float(b.abs().max()) > 0
         torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_only_the_vertices_asked_for_are_evaluated(threads):
+    """only=mask: the masked rows' colours and gradients are the full evaluation's, bit for bit; the other rows get
+    colour 0 and zero gradients (a mask in blocks and scattered, so both the selection and the clearing are hit)."""
+    before = numba.get_num_threads()
+    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+    try:
+        dc, rest, dirs, w = _inputs(16, n=301)
+        mask = np.zeros(301, np.uint8)
+        mask[40:90] = 1
+        mask[::7] = 1
+        sel = mask.astype(bool)
+        a = [t.clone().requires_grad_(True) for t in (dc, rest, dirs)]
+        b = [t.clone().requires_grad_(True) for t in (dc, rest, dirs)]
+        ca, cb = sh_colours(*a, 16, only=mask), sh_colours(*b, 16)
+        assert torch.equal(ca[sel], cb[sel]) and float(ca[~sel].abs().max()) == 0.0
+        (ca * w).sum().backward()
+        (cb * torch.where(torch.as_tensor(sel)[:, None], w, 0.0)).sum().backward()  # what reads only the mask
+        for x, y in zip(a, b):
+            assert torch.equal(x.grad[sel], y.grad[sel])
+            assert float(x.grad[~sel].abs().max()) == 0.0
+        empty = [t.clone().requires_grad_(True) for t in (dc, rest, dirs)]
+        c0 = sh_colours(*empty, 16, only=np.zeros(301, np.uint8))
+        assert float(c0.abs().max()) == 0.0
+        (c0 * w).sum().backward()
+        assert all(float(t.grad.abs().max()) == 0.0 for t in empty)
+    finally:
+        numba.set_num_threads(before)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_vertices_in_view_hold_every_vertex_the_render_reads(seed):
+    """The render reads the colours and opacities of the faces setup_faces keeps (ntiles > 0): vertices_in_view marks
+    all of their vertices (random scenes with faces off-screen, behind the camera, across the near plane, huge), and
+    leaves out some, so it is no mask of everything. A render with every other colour and opacity scrambled is the
+    same render, with the same gradients."""
+    from tests.render.render_scenes import random_scene
+    from trisplat.render import kernels as kn
+    from trisplat.render import rasterize
+    from trisplat.render.rasterize import vertices_in_view
+
+    pos, faces, col, op, w2c, K = random_scene(seed, n_faces=60, dtype=torch.float32)
+    W, H = 40, 32
+    mask = vertices_in_view(pos, faces, w2c, K, W, H, near=0.01)
+    F = len(faces)
+    theta = np.empty((F, kn.N_THETA), np.float32)
+    rect, key = np.empty((F, 4), np.int32), np.zeros(F, np.float32)
+    argmin, ntiles = np.empty(F, np.int8), np.empty(F, np.int64)
+    kn.setup_faces(pos.numpy(), faces.numpy(), w2c.double().numpy(), K.double().numpy(), col.numpy(), op.numpy(),
+                   True, 0.01, 1e10, 0.0, 0.0, W, H, 8, theta, rect, key, argmin, ntiles)
+    read = np.unique(faces.numpy()[ntiles > 0].ravel())
+    assert mask[read].all()
+    assert 0 < mask.sum() < len(mask)
+    off = torch.as_tensor(mask == 0)
+    outs = []
+    for scramble in (False, True):
+        c, o = col.clone(), op.clone()
+        if scramble:
+            c[off], o[off] = 0.123, 0.456
+        c.requires_grad_(True)
+        out = rasterize(pos, faces, c, o, 0.7, w2c, K, W, H)
+        (out.rgb * torch.linspace(0, 1, out.rgb.numel()).reshape(out.rgb.shape)).sum().backward()
+        outs.append((out.rgb.detach(), c.grad))
+    assert torch.equal(outs[0][0], outs[1][0]) and torch.equal(outs[0][1], outs[1][1])
+    assert float(outs[0][1][off].abs().max()) == 0.0

@@ -24,9 +24,10 @@ def tiny_scene(tmp_path_factory):
                                n_points=0)
 
 
-def _trainer(scene_dir, run_dir, resume=False, **over):
+def _trainer(scene_dir, run_dir, resume=False, far_points=0, **over):
     """A trainer on the tiny scene, initialised with grey triangles on surface samples (geometry roughly right,
-    colours to be learned)."""
+    colours to be learned); far_points: as many more in random directions far beyond the cameras (each view sees
+    a few of them)."""
     import trimesh
 
     from trisplat.data import load_dataset
@@ -38,6 +39,9 @@ def _trainer(scene_dir, run_dir, resume=False, **over):
     data = load_dataset(scene_dir, **opts)
     pts, _ = trimesh.sample.sample_surface(demo_mesh(), 400, seed=0)
     pts = (np.c_[pts, np.ones(len(pts))] @ data.normalization.T)[:, :3]
+    if far_points:
+        d = np.random.default_rng(1).normal(size=(far_points, 3))
+        pts = np.concatenate([pts, 8.0 * d / np.linalg.norm(d, axis=1, keepdims=True)])
     initial, _ = init_soup(pts, np.full((len(pts), 3), 0.5), seed=0, sh_degree=cfg.sh_degree)
     return Trainer(cfg, data, run_dir, resume=resume, initial=None if resume else initial, show_progress=False,
                    data_options=opts, data_path=str(scene_dir))
@@ -485,3 +489,31 @@ def test_evaluate_hard_with_sh_band_0_scores_the_view_independent_colour(tiny_sc
                       for i in views])
     assert tr.evaluate_hard(views, sh_degree=0) == pytest.approx(expect, abs=1e-6)
     assert abs(tr.evaluate_hard(views) - expect) > 0.05  # the bands 1+ changed the colour
+
+
+def test_steps_with_the_colours_of_the_vertices_in_view_only_equal_steps_with_all(tiny_scene, tmp_path, monkeypatch):
+    """The trainer evaluates SH colours only for trisplat.render.vertices_in_view (issue 50): ten training steps
+    give the same parameters, bit for bit, as ten steps with every vertex's colour evaluated (the demo's views
+    see part of it: the mask leaves vertices out)."""
+    import trisplat.train.trainer as trainer_module
+
+    masks = []
+    real = trainer_module.vertices_in_view
+
+    def spy(*a, **k):
+        masks.append(real(*a, **k))
+        return masks[-1]
+
+    results = []
+    for name, fn in (("masked", spy), ("every", lambda *a, **k: None)):
+        monkeypatch.setattr(trainer_module, "vertices_in_view", fn)
+        tr = _trainer(tiny_scene, tmp_path / name, steps=400, far_points=200)
+        for _ in range(10):
+            assert tr.train_step()["ok"]
+            tr.step += 1
+        results.append(_params(tr))
+    assert any(0 < m.sum() < len(m) for m in masks)
+    (pa, fa), (pb, fb) = results
+    assert torch.equal(fa, fb)
+    for k in pa:
+        assert torch.equal(pa[k], pb[k]), k

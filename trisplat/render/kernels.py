@@ -49,6 +49,45 @@ def setup_faces(pos, faces, w2c, K, rgb, opac, opacity_min, near, far, min_area,
                                       width, height, tile, theta, rect, key, argmin, xc, uv, lens)
 
 
+VISIBLE_MARGIN_PX = 1.0  # vertices_in_view widens the image by this much on each side: a superset whatever the rounding
+
+
+@njit(parallel=True, cache=_CACHE)
+def vertices_in_view(pos, faces, w2c, K, near, far, width, height, mask):
+    """mask[v] = 1 for the vertices of every face that setup_faces could keep (no vertex nearer than `near`, not
+    all beyond `far`, its projected bounding box meeting the image widened by VISIBLE_MARGIN_PX), 0 elsewhere
+    (mask [V] uint8). A superset of the vertices whose colours and opacities the render reads: the others get no
+    gradient from it. One pass projects the vertices, one over the faces marks theirs (two faces marking one vertex
+    write the same value)."""
+    V, F = pos.shape[0], faces.shape[0]
+    uvz = np.empty((V, 3))
+    for v in prange(V):
+        mask[v] = 0
+        x = w2c[0, 0] * pos[v, 0] + w2c[0, 1] * pos[v, 1] + w2c[0, 2] * pos[v, 2] + w2c[0, 3]
+        y = w2c[1, 0] * pos[v, 0] + w2c[1, 1] * pos[v, 1] + w2c[1, 2] * pos[v, 2] + w2c[1, 3]
+        z = w2c[2, 0] * pos[v, 0] + w2c[2, 1] * pos[v, 1] + w2c[2, 2] * pos[v, 2] + w2c[2, 3]
+        uvz[v, 2] = z
+        if z > 0.0:
+            uvz[v, 0] = (K[0, 0] * x + K[0, 1] * y) / z + K[0, 2]
+            uvz[v, 1] = (K[1, 0] * x + K[1, 1] * y) / z + K[1, 2]
+        else:
+            uvz[v, 0] = uvz[v, 1] = 0.0
+    lo_u, hi_u = -VISIBLE_MARGIN_PX, width + VISIBLE_MARGIN_PX
+    lo_v, hi_v = -VISIBLE_MARGIN_PX, height + VISIBLE_MARGIN_PX
+    for f in prange(F):
+        a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
+        zmin = min(uvz[a, 2], min(uvz[b, 2], uvz[c, 2]))
+        if zmin < near or zmin > far:
+            continue
+        if max(uvz[a, 0], max(uvz[b, 0], uvz[c, 0])) < lo_u or min(uvz[a, 0], min(uvz[b, 0], uvz[c, 0])) > hi_u:
+            continue
+        if max(uvz[a, 1], max(uvz[b, 1], uvz[c, 1])) < lo_v or min(uvz[a, 1], min(uvz[b, 1], uvz[c, 1])) > hi_v:
+            continue
+        mask[a] = 1
+        mask[b] = 1
+        mask[c] = 1
+
+
 BLOCKS_PER_THREAD = 4  # blocks of the parallel scans, counting sorts and radix passes, per numba thread (the
 # results depend on neither the blocks nor the threads; fewer blocks, less serial work between the passes)
 MAX_BLOCKS = 256

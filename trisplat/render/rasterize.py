@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import numpy as np
 import torch
 
 from trisplat.io.colour import linear_to_srgb_torch, srgb_to_linear_torch
@@ -89,4 +90,22 @@ def rasterize(
     return stack_views(outs)
 
 
-__all__ = ["rasterize", "camera_center"]
+def vertices_in_view(positions, faces, world_to_camera, K, width: int, height: int, near: float = RenderOptions.near,
+                     far: float = RenderOptions.far):
+    """uint8 [V] numpy array: 1 for a superset of the vertices whose colours and opacities a render of this view
+    (the same positions, faces [F,3], [4,4] pose, [3,3] K, size and near/far planes; any supersampling) reads,
+    0 for the rest, which get no gradient from it: the vertices of every face with no vertex nearer than `near`,
+    not wholly beyond `far`, whose projected bounding box meets the image (kernels.vertices_in_view). A caller that
+    computes per-vertex inputs of the render (the trainer's SH colours) can skip the others. CPU tensors only."""
+    from trisplat.render import kernels as kn
+
+    pos = np.ascontiguousarray(torch.as_tensor(positions).detach().to(torch.float32).numpy())
+    fc = np.ascontiguousarray(torch.as_tensor(faces).detach().numpy())
+    w2c = np.ascontiguousarray(torch.as_tensor(world_to_camera).detach().numpy(), dtype=np.float64)
+    Kn = np.ascontiguousarray(torch.as_tensor(K).detach().numpy(), dtype=np.float64)
+    mask = np.empty(pos.shape[0], np.uint8)
+    kn.vertices_in_view(pos, fc, w2c, Kn, float(near), float(far), int(width), int(height), mask)
+    return mask
+
+
+__all__ = ["rasterize", "camera_center", "vertices_in_view"]

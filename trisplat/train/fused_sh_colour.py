@@ -24,13 +24,25 @@ from trisplat.timing import stage
 
 
 @njit(parallel=True, cache=True)
-def _forward(dc, rest, dirs, K, out, live):
+def _forward(dc, rest, dirs, K, out, live, sel):
     """out [N,3] = max(sum_{k<K} Y_k(dirs[n]) c_k + 0.5, 0) with c_0 = dc[n, 0], c_k = rest[n, k - 1]; live [N,3]
-    where the clamp passes the gradient (its input >= 0)."""
+    where the clamp passes the gradient (its input >= 0). sel: the rows to evaluate (int64, ascending), the rest
+    0 and not live; empty: every row."""
     N = dc.shape[0]
+    M = sel.shape[0] if sel.shape[0] > 0 else N
+    for ch in prange(CHUNKS if sel.shape[0] > 0 else 0):  # the rows outside sel, in contiguous blocks
+        lo, hi = ch * N // CHUNKS, (ch + 1) * N // CHUNKS
+        j = np.searchsorted(sel, lo)
+        for n in range(lo, hi):
+            if j < M and sel[j] == n:
+                j += 1
+                continue
+            out[n, 0] = out[n, 1] = out[n, 2] = 0.0
+            live[n, 0] = live[n, 1] = live[n, 2] = False
     for ch in prange(CHUNKS):
         Y = np.empty(16)
-        for n in range(ch * N // CHUNKS, (ch + 1) * N // CHUNKS):
+        for m in range(ch * M // CHUNKS, (ch + 1) * M // CHUNKS):
+            n = sel[m] if sel.shape[0] > 0 else m
             x, y, z, _, _ = _unit(dirs, n)
             _basis(x, y, z, K, Y)
             for c in range(3):
@@ -42,14 +54,27 @@ def _forward(dc, rest, dirs, K, out, live):
 
 
 @njit(parallel=True, cache=True)
-def _backward(dc, rest, dirs, K, live, g, g_dc, g_rest, g_dirs):
+def _backward(dc, rest, dirs, K, live, g, g_dc, g_rest, g_dirs, sel):
     """Gradients of sum(g * out) w.r.t. dc (g_dc [N,1,3]), rest (g_rest [N,R,3], zero past K - 1) and dirs
-    (g_dirs [N,3])."""
+    (g_dirs [N,3]); sel as in _forward (the rows outside it get zeros)."""
     N, R = dc.shape[0], rest.shape[1]
+    M = sel.shape[0] if sel.shape[0] > 0 else N
+    for ch in prange(CHUNKS if sel.shape[0] > 0 else 0):  # the rows outside sel, in contiguous blocks
+        lo, hi = ch * N // CHUNKS, (ch + 1) * N // CHUNKS
+        j = np.searchsorted(sel, lo)
+        for n in range(lo, hi):
+            if j < M and sel[j] == n:
+                j += 1
+                continue
+            g_dc[n, 0, 0] = g_dc[n, 0, 1] = g_dc[n, 0, 2] = 0.0
+            for r in range(R):
+                g_rest[n, r, 0] = g_rest[n, r, 1] = g_rest[n, r, 2] = 0.0
+            g_dirs[n, 0] = g_dirs[n, 1] = g_dirs[n, 2] = 0.0
     for ch in prange(CHUNKS):
         Y = np.empty(16)
         gY = np.zeros(16)
-        for n in range(ch * N // CHUNKS, (ch + 1) * N // CHUNKS):
+        for m in range(ch * M // CHUNKS, (ch + 1) * M // CHUNKS):
+            n = sel[m] if sel.shape[0] > 0 else m
             x, y, z, ln, s = _unit(dirs, n)
             _basis(x, y, z, K, Y)
             g0 = g[n, 0] if live[n, 0] else 0.0
@@ -73,15 +98,15 @@ def _backward(dc, rest, dirs, K, live, g, g_dc, g_rest, g_dirs):
 
 class _SHColours(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, sh_dc, sh_rest, dirs, K):
+    def forward(ctx, sh_dc, sh_rest, dirs, K, sel):
         with stage("sh_forward"):
             dc, rest = sh_dc.detach().numpy(), sh_rest.detach().numpy()
             d = np.ascontiguousarray(dirs.detach().to(sh_dc.dtype).numpy())
             out = np.empty((dc.shape[0], 3), dc.dtype)
             live = np.empty((dc.shape[0], 3), np.bool_)
-            _forward(dc, rest, d, K, out, live)
+            _forward(dc, rest, d, K, out, live, sel)
         ctx.save_for_backward(sh_dc, sh_rest, dirs)
-        ctx.K, ctx.live = K, live
+        ctx.K, ctx.live, ctx.sel = K, live, sel
         return torch.from_numpy(out)
 
     @staticmethod
@@ -92,8 +117,8 @@ class _SHColours(torch.autograd.Function):
             d = np.ascontiguousarray(dirs.detach().to(sh_dc.dtype).numpy())
             g_np = np.ascontiguousarray(g.detach().to(sh_dc.dtype).numpy())
             g_dc, g_rest, g_d = np.empty_like(dc), np.empty_like(rest), np.empty_like(d)
-            _backward(dc, rest, d, ctx.K, ctx.live, g_np, g_dc, g_rest, g_d)
-        return torch.from_numpy(g_dc), torch.from_numpy(g_rest), torch.from_numpy(g_d).to(dirs.dtype), None
+            _backward(dc, rest, d, ctx.K, ctx.live, g_np, g_dc, g_rest, g_d, ctx.sel)
+        return torch.from_numpy(g_dc), torch.from_numpy(g_rest), torch.from_numpy(g_d).to(dirs.dtype), None, None
 
 
 def sh_colours_torch(sh_dc: torch.Tensor, sh_rest: torch.Tensor, dirs: torch.Tensor, K: int) -> torch.Tensor:
@@ -101,13 +126,40 @@ def sh_colours_torch(sh_dc: torch.Tensor, sh_rest: torch.Tensor, dirs: torch.Ten
     return eval_sh_torch(torch.cat([sh_dc, sh_rest], 1)[:, :K], dirs)
 
 
-def sh_colours(sh_dc: torch.Tensor, sh_rest: torch.Tensor, dirs: torch.Tensor, K: int) -> torch.Tensor:
+def sh_colours(sh_dc: torch.Tensor, sh_rest: torch.Tensor, dirs: torch.Tensor, K: int,
+               only: np.ndarray | None = None) -> torch.Tensor:
     """sh_colours_torch's value and gradients (to sh_dc, sh_rest and dirs); the Numba kernels for contiguous CPU
-    float32/64 parameters, torch elsewhere. K past the parameters' R + 1 bases gives them all (as a slice does)."""
+    float32/64 parameters, torch elsewhere. K past the parameters' R + 1 bases gives them all (as a slice does).
+
+    only: a [V] mask (trisplat.render.vertices_in_view) of the vertices whose colours will be read; the Numba
+    kernels evaluate those alone and give the others colour 0 and zero gradients (their true gradient when nothing
+    reads them). The torch path evaluates every vertex."""
     K = max(1, min(int(K), sh_rest.shape[1] + 1))
     if all(t.device.type == "cpu" and t.dtype in (torch.float32, torch.float64) and t.is_contiguous()
            for t in (sh_dc, sh_rest)) and sh_dc.dtype == sh_rest.dtype and dirs.device.type == "cpu" \
             and sh_dc.ndim == 3 and sh_dc.shape[1:] == (1, 3) and sh_rest.ndim == 3 and sh_rest.shape[2] == 3 \
             and dirs.is_floating_point():
-        return _SHColours.apply(sh_dc, sh_rest, dirs, K)
+        sel = _EVERY if only is None else np.flatnonzero(only).astype(np.int64)
+        if only is not None and sel.shape[0] == 0:
+            sel = None  # nothing in view: every colour 0, every gradient 0
+        if sel is None:
+            return _NoColours.apply(sh_dc, sh_rest, dirs)
+        return _SHColours.apply(sh_dc, sh_rest, dirs, K, sel)
     return sh_colours_torch(sh_dc, sh_rest, dirs, K)
+
+
+_EVERY = np.empty(0, np.int64)  # the kernels' "every row"
+
+
+class _NoColours(torch.autograd.Function):
+    """No vertex in view: colours 0 [V,3], zero gradients (what the kernels give an empty selection)."""
+
+    @staticmethod
+    def forward(ctx, sh_dc, sh_rest, dirs):
+        ctx.shapes = (sh_dc, sh_rest, dirs)
+        return sh_dc.new_zeros((sh_dc.shape[0], 3))
+
+    @staticmethod
+    def backward(ctx, g):
+        sh_dc, sh_rest, dirs = ctx.shapes
+        return torch.zeros_like(sh_dc), torch.zeros_like(sh_rest), torch.zeros_like(dirs)
