@@ -29,7 +29,7 @@ from numba import cuda
 from trisplat.render import kernel_math
 from trisplat.render.kernel_math import N_THETA, T_COL, T_INVR, T_NRM, T_OP, T_S, T_ZI
 
-KERNEL_MATH_STAMP = "5a2f7fea939647bf"  # kernel_math.source_stamp() last checked against (kernel_math docstring)
+KERNEL_MATH_STAMP = "f283f9c65ec7a742"  # kernel_math.source_stamp() last checked against (kernel_math docstring)
 _CACHE = kernel_math.source_stamp() == KERNEL_MATH_STAMP
 SIMULATOR = bool(numba.config.ENABLE_CUDASIM)
 km = kernel_math.compiled(cuda.jit(device=True), "trisplat.render.kernel_math.cuda")

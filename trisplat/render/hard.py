@@ -22,7 +22,7 @@ DEPTH_SLABS = 64  # front-to-back passes by nearest-vertex depth (more: better c
 ORDER_CHUNKS = 64  # parallel chunks of the depth-order counting sort
 HIZ_BLOCK = 8  # pixels per side of the occlusion-culling blocks (each keeps the farthest depth it shows)
 BANDS_PER_THREAD = 1  # horizontal image bands per Numba thread (no atomics: a band owns its pixels)
-KERNEL_MATH_STAMP = "5a2f7fea939647bf"  # kernel_math.source_stamp() last checked against (kernel_math docstring)
+KERNEL_MATH_STAMP = "f283f9c65ec7a742"  # kernel_math.source_stamp() last checked against (kernel_math docstring)
 _CACHE = kernel_math.source_stamp() == KERNEL_MATH_STAMP
 km = kernel_math.compiled(njit(inline="always"), "trisplat.render.kernel_math.cpu_hard")  # the shared z-buffer maths
 

@@ -87,6 +87,18 @@ def setup_face(f, pos, faces, w2c, K, rgb, opac, opacity_min, near, far, min_are
     for k in range(3):
         uv[k, 0] = (K[0, 0] * xc[k, 0] + K[0, 1] * xc[k, 1]) / xc[k, 2] + K[0, 2]
         uv[k, 1] = (K[1, 0] * xc[k, 0] + K[1, 1] * xc[k, 1]) / xc[k, 2] + K[1, 2]
+    # Pixel-centre bounding box first: most faces in front of a camera inside a scene are off to its sides, and
+    # they need nothing more (the tile rectangle and the exact overlap count come at the end).
+    umin = min(uv[0, 0], min(uv[1, 0], uv[2, 0]))
+    umax = max(uv[0, 0], max(uv[1, 0], uv[2, 0]))
+    vmin = min(uv[0, 1], min(uv[1, 1], uv[2, 1]))
+    vmax = max(uv[0, 1], max(uv[1, 1], uv[2, 1]))
+    ix0 = max(0, int(math.ceil(umin - 0.5)))
+    ix1 = min(width - 1, int(math.floor(umax - 0.5)))
+    iy0 = max(0, int(math.ceil(vmin - 0.5)))
+    iy1 = min(height - 1, int(math.floor(vmax - 0.5)))
+    if ix0 > ix1 or iy0 > iy1:
+        return 0
     ax, ay, az = xc[1, 0] - xc[0, 0], xc[1, 1] - xc[0, 1], xc[1, 2] - xc[0, 2]
     bx, by, bz = xc[2, 0] - xc[0, 0], xc[2, 1] - xc[0, 1], xc[2, 2] - xc[0, 2]
     cx, cy, cz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
@@ -140,17 +152,7 @@ def setup_face(f, pos, faces, w2c, K, rgb, opac, opacity_min, near, far, min_are
     else:
         theta[f, T_OP] = (o0 + o1 + o2) / 3.0
         argmin[f] = -1
-    # Pixel-centre bounding box -> tile rectangle, then the exact overlap count.
-    umin = min(uv[0, 0], min(uv[1, 0], uv[2, 0]))
-    umax = max(uv[0, 0], max(uv[1, 0], uv[2, 0]))
-    vmin = min(uv[0, 1], min(uv[1, 1], uv[2, 1]))
-    vmax = max(uv[0, 1], max(uv[1, 1], uv[2, 1]))
-    ix0 = max(0, int(math.ceil(umin - 0.5)))
-    ix1 = min(width - 1, int(math.floor(umax - 0.5)))
-    iy0 = max(0, int(math.ceil(vmin - 0.5)))
-    iy1 = min(height - 1, int(math.floor(vmax - 0.5)))
-    if ix0 > ix1 or iy0 > iy1:
-        return 0
+    # the tile rectangle, then the exact overlap count
     rect[f, 0], rect[f, 1], rect[f, 2], rect[f, 3] = ix0, iy0, ix1, iy1
     key[f] = mz  # centroid view depth; ties keep the face order (stable sort)
     return count_tiles(theta[f], ix0, iy0, ix1, iy1, tile)

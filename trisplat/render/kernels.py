@@ -26,7 +26,7 @@ from numba import njit, prange
 from trisplat.render import kernel_math
 from trisplat.render.kernel_math import N_THETA, T_COL, T_EDGE, T_INVR, T_NRM, T_OP, T_S, T_ZI  # noqa: F401 (re-exported)
 
-KERNEL_MATH_STAMP = "5a2f7fea939647bf"  # kernel_math.source_stamp() last checked against (kernel_math docstring)
+KERNEL_MATH_STAMP = "f283f9c65ec7a742"  # kernel_math.source_stamp() last checked against (kernel_math docstring)
 _CACHE = kernel_math.source_stamp() == KERNEL_MATH_STAMP
 km = kernel_math.compiled(njit(inline="always"), "trisplat.render.kernel_math.cpu")  # inlined into the kernels below
 SETUP_CHUNKS = 256  # parallel chunks of the per-face setup loops
