@@ -164,6 +164,41 @@ def test_scatter_vertices_parallel_copies_sum_as_np_add_at():
 
 
 @pytest.mark.parametrize("threads", [1, 2])
+def test_scatter_vertices_skips_the_faces_without_pairs(threads):
+    """Given bin_faces' face_start, the scatter adds only the faces with pairs (setup_backward leaves the others'
+    rows unwritten): with NaN in those rows, the sums equal the scatter of the same gradients with zeros there,
+    over two chunks (f0 > 0 on the second)."""
+    import numba
+
+    from trisplat.render import kernels as kn
+
+    old = numba.get_num_threads()
+    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+    try:
+        rng = np.random.default_rng(2)
+        V, F = 2_000, 2 * kn.SCATTER_SERIAL_BELOW
+        faces = rng.integers(0, V, size=(F, 3)).astype(np.int32)
+        pairs = rng.integers(0, 3, size=F) * (rng.random(F) < 0.3)  # 70% of the faces not shown
+        face_start = np.concatenate([[0], np.cumsum(pairs)]).astype(np.int64)
+        shown = pairs > 0
+        gp, gr = rng.normal(size=(F, 3, 3)).astype(np.float32), rng.normal(size=(F, 3, 3)).astype(np.float32)
+        go = rng.normal(size=(F, 3)).astype(np.float32)
+        zero = [np.where(shown.reshape((-1,) + (1,) * (g.ndim - 1)), g, 0).astype(np.float32) for g in (gp, gr, go)]
+        nan = [np.where(shown.reshape((-1,) + (1,) * (g.ndim - 1)), g, np.nan).astype(np.float32) for g in (gp, gr, go)]
+        outs = []
+        for grads, fs in ((zero, None), (nan, face_start)):
+            out = [np.zeros((V, 3), np.float32), np.zeros((V, 3), np.float32), np.zeros(V, np.float32)]
+            for f0, f1 in ((0, F // 2), (F // 2, F)):
+                kn.scatter_vertices(faces, f0, *(g[f0:f1] for g in grads), *out, face_start=fs)
+            outs.append(out)
+        for a, b in zip(*outs):
+            np.testing.assert_array_equal(a, b)
+        assert np.abs(outs[0][0]).max() > 0
+    finally:
+        numba.set_num_threads(old)
+
+
+@pytest.mark.parametrize("threads", [1, 2])
 def test_scatter_vertices_hub_and_unreferenced_vertices_at_1_and_2_threads(threads):
     """The scatter on its parallel path with a vertex shared by a tenth of the corners, vertices no face uses, and
     two chunks (f0 > 0 on the second): every thread count gives the serial pass's float32 sums bit for bit (each

@@ -584,7 +584,8 @@ def raster_backward(theta, rect, pair_face, tile_start, tile_pairs, width, heigh
 def setup_backward(pos, faces, w2c, K, argmin, pair_grad, pos_of, face_start, f0, g_pos_f, g_rgb_f, g_op_f):
     """Faces f0 .. f0 + len(g_pos_f) - 1: sum the pair gradients of THETA, then chain back through the setup to the
     face's vertices (kernel_math.face_backward). Writes g_pos_f [n,3,3] (world positions), g_rgb_f [n,3,3] (vertex
-    colours), g_op_f [n,3] (vertex opacities), row i for face f0 + i."""
+    colours), g_op_f [n,3] (vertex opacities), row i for face f0 + i, for the faces with pairs (face_start[f] <
+    face_start[f + 1]) only: the others have no gradient, and scatter_vertices given face_start skips them."""
     F = g_pos_f.shape[0]
     for ch in prange(SETUP_CHUNKS):  # per-chunk scratch arrays: no allocation per face
         g = np.zeros(N_THETA)
@@ -599,12 +600,7 @@ def setup_backward(pos, faces, w2c, K, argmin, pair_grad, pos_of, face_start, f0
         for i in range(ch * F // SETUP_CHUNKS, (ch + 1) * F // SETUP_CHUNKS):
             f = f0 + i
             a_, b_ = face_start[f], face_start[f + 1]
-            if a_ == b_:
-                for k in range(3):
-                    for c in range(3):
-                        g_pos_f[i, k, c] = 0.0
-                        g_rgb_f[i, k, c] = 0.0
-                    g_op_f[i, k] = 0.0
+            if a_ == b_:  # not shown: no gradient, and its rows are left as they are (scatter_vertices skips it)
                 continue
             g[:] = 0.0
             for p in range(a_, b_):
@@ -618,15 +614,18 @@ SCATTER_SERIAL_BELOW = 20_000  # faces: fewer are scattered in one serial pass (
 
 
 @njit(parallel=True, cache=_CACHE)
-def _scatter_vertices(faces, f0, g_pos_f, g_rgb_f, g_op_f, g_pos, g_rgb, g_op, T):
+def _scatter_vertices(faces, f0, g_pos_f, g_rgb_f, g_op_f, g_pos, g_rgb, g_op, T, face_start):
     """Accumulate the face-vertex gradients of faces f0.. on the shared vertices. No atomics, no copies: with T
     threads, thread t reads every face corner and adds those whose vertex lies in its t-th of the vertex range (each
     vertex's sum keeps the serial order of its corners: the result is the serial pass's, bit for bit)."""
     n = g_pos_f.shape[0]
     V = g_pos.shape[0]
+    skip = face_start.shape[0] > 0
     for t in prange(T):
         lo, hi = t * V // T, (t + 1) * V // T
         for i in range(n):
+            if skip and face_start[f0 + i] == face_start[f0 + i + 1]:
+                continue
             for k in range(3):
                 v = faces[f0 + i, k]
                 if v < lo or v >= hi:
@@ -637,7 +636,12 @@ def _scatter_vertices(faces, f0, g_pos_f, g_rgb_f, g_op_f, g_pos, g_rgb, g_op, T
                 g_op[v] += g_op_f[i, k]
 
 
-def scatter_vertices(faces, f0, g_pos_f, g_rgb_f, g_op_f, g_pos, g_rgb, g_op):
-    """_scatter_vertices on numba's threads (one below SCATTER_SERIAL_BELOW faces)."""
+_EVERY_FACE = np.empty(0, np.int64)
+
+
+def scatter_vertices(faces, f0, g_pos_f, g_rgb_f, g_op_f, g_pos, g_rgb, g_op, face_start=None):
+    """_scatter_vertices on numba's threads (one below SCATTER_SERIAL_BELOW faces). face_start (bin_faces'): the
+    faces without pairs are skipped (setup_backward leaves their rows unwritten); None: every face is added."""
     T = 1 if len(g_pos_f) < SCATTER_SERIAL_BELOW else numba.get_num_threads()
-    _scatter_vertices(faces, f0, g_pos_f, g_rgb_f, g_op_f, g_pos, g_rgb, g_op, T)
+    _scatter_vertices(faces, f0, g_pos_f, g_rgb_f, g_op_f, g_pos, g_rgb, g_op, T,
+                      _EVERY_FACE if face_start is None else face_start)

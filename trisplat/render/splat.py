@@ -198,7 +198,8 @@ def backward_numba(bins: _Bins, sigma, width, height, opts: RenderOptions, g_rgb
                 g_op_f[:m],
             )
         with stage("rb_scatter"):
-            kn.scatter_vertices(bins.faces, f0, g_pos_f[:m], g_rgb_f[:m], g_op_f[:m], g_pos, g_rgbv, g_op)
+            kn.scatter_vertices(bins.faces, f0, g_pos_f[:m], g_rgb_f[:m], g_op_f[:m], g_pos, g_rgbv, g_op,
+                                bins.face_start)
     return g_pos, g_rgbv, g_op
 
 
