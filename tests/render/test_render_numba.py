@@ -241,13 +241,13 @@ def test_scatter_vertices_hub_and_unreferenced_vertices_at_1_and_2_threads(threa
 
 
 def test_the_tile_order_visits_every_tile_once_and_spreads_each_threads_share():
-    """raster_forward and raster_backward walk tile (k * tile_stride(nt)) mod nt: a permutation of the tiles for
+    """raster_forward and raster_backward walk tile (k * spread_stride(nt)) mod nt: a permutation of the tiles for
     every count, whose first and second halves (two threads' static shares) each take about half of the image's
     top and bottom halves (in row order a thread got one half of the image)."""
     from trisplat.render import kernels as kn
 
     for nt in list(range(1, 300)) + [1700, 4096, 20000]:
-        s = kn.tile_stride(nt)
+        s = kn.spread_stride(nt)
         order = (np.arange(nt) * s) % nt
         assert np.array_equal(np.sort(order), np.arange(nt)), nt
         if nt >= 100:

@@ -40,7 +40,9 @@ def setup_faces(pos, faces, w2c, K, rgb, opac, opacity_min, near, far, min_area,
     (centroid view depth), opacity arg-min vertex, and the number of tiles the face overlaps exactly (0 = culled or
     off-screen)."""
     F = faces.shape[0]
-    for ch in prange(SETUP_CHUNKS):  # per-chunk scratch arrays: no allocation per face
+    stride = spread_stride(SETUP_CHUNKS)  # chunks in a spread order: the faces a view keeps cluster by index
+    for kc in prange(SETUP_CHUNKS):  # per-chunk scratch arrays: no allocation per face
+        ch = (kc * stride) % SETUP_CHUNKS
         xc = np.empty((3, 3))
         uv = np.empty((3, 2))
         lens = np.empty(3)
@@ -306,13 +308,14 @@ def _recip(nx):
 
 
 @njit(cache=_CACHE)
-def tile_stride(nt):
-    """The step of the tile order the raster kernels walk: tile (k * stride) mod nt at iteration k, with stride
-    near 0.618 nt and coprime to it, so each thread's contiguous block of iterations (numba's parallel loops split
-    them statically on the OpenMP layer; its chunk-size setting does not make them dynamic) is spread evenly over the
-    image. In row order, the bottom half of a photo of a room (floor, furniture) held 58-68% of a bonsai step's
-    pixel-face work early in training, and its thread set the pace. Every tile is still visited once, and writes
-    only its own pixels and pairs: the results do not depend on the order."""
+def spread_stride(nt):
+    """The step of a spread order over nt work items (tiles, chunks of faces): item (k * stride) mod nt at
+    iteration k, with stride near 0.618 nt and coprime to it, so each thread's contiguous block of iterations
+    (numba's parallel loops split them statically on the OpenMP layer; its chunk-size setting does not make them
+    dynamic) is spread evenly over the items. In row order, the bottom half of a photo of a room (floor,
+    furniture) held 58-68% of a bonsai step's pixel-face work early in training, and its thread set the pace; the
+    faces a view keeps cluster by index the same way. Every item is still visited once and writes only its own
+    outputs: the results do not depend on the order."""
     if nt <= 2:
         return 1
     s = int(nt * 0.6180339887) | 1
@@ -334,7 +337,7 @@ def raster_forward(theta, rect, pair_face, tile_start, tile_pairs, width, height
     alpha_min, alpha_max, t_min = np.float32(alpha_min), np.float32(alpha_max), np.float32(t_min)
     ntx = (width + tile - 1) // tile
     nt = tile_start.shape[0] - 1
-    stride = tile_stride(nt)
+    stride = spread_stride(nt)
     for kt in prange(nt):
         t = (kt * stride) % nt
         tx, ty = t % ntx, t // ntx
@@ -453,7 +456,7 @@ def raster_backward(theta, rect, pair_face, tile_start, tile_pairs, width, heigh
     alpha_min, alpha_max, t_min = np.float32(alpha_min), np.float32(alpha_max), np.float32(t_min)
     ntx = (width + tile - 1) // tile
     nt = tile_start.shape[0] - 1
-    stride = tile_stride(nt)
+    stride = spread_stride(nt)
     for kt in prange(nt):
         t = (kt * stride) % nt
         tx, ty = t % ntx, t // ntx
@@ -611,7 +614,9 @@ def setup_backward(pos, faces, w2c, K, argmin, pair_grad, pos_of, face_start, f0
     colours), g_op_f [n,3] (vertex opacities), row i for face f0 + i, for the faces with pairs (face_start[f] <
     face_start[f + 1]) only: the others have no gradient, and scatter_vertices given face_start skips them."""
     F = g_pos_f.shape[0]
-    for ch in prange(SETUP_CHUNKS):  # per-chunk scratch arrays: no allocation per face
+    stride = spread_stride(SETUP_CHUNKS)  # chunks in a spread order: the faces a view keeps cluster by index
+    for kc in prange(SETUP_CHUNKS):  # per-chunk scratch arrays: no allocation per face
+        ch = (kc * stride) % SETUP_CHUNKS
         g = np.zeros(N_THETA)
         xc = np.empty((3, 3))
         uv = np.empty((3, 2))
