@@ -24,19 +24,14 @@ from trisplat.timing import stage
 
 
 @njit(parallel=True, cache=True)
-def _forward(dc, rest, dirs, K, out, live, sel):
+def _forward(dc, rest, dirs, K, out, live, sel, keep):
     """out [N,3] = max(sum_{k<K} Y_k(dirs[n]) c_k + 0.5, 0) with c_0 = dc[n, 0], c_k = rest[n, k - 1]; live [N,3]
-    where the clamp passes the gradient (its input >= 0). sel: the rows to evaluate (int64, ascending), the rest
-    0 and not live; empty: every row."""
+    where the clamp passes the gradient (its input >= 0). sel: the rows to evaluate (int64), keep [N] their mask;
+    the other rows 0 and not live. sel empty: every row."""
     N = dc.shape[0]
     M = sel.shape[0] if sel.shape[0] > 0 else N
-    for ch in prange(CHUNKS if sel.shape[0] > 0 else 0):  # the rows outside sel, in contiguous blocks
-        lo, hi = ch * N // CHUNKS, (ch + 1) * N // CHUNKS
-        j = np.searchsorted(sel, lo)
-        for n in range(lo, hi):
-            if j < M and sel[j] == n:
-                j += 1
-                continue
+    for n in prange(N if sel.shape[0] > 0 else 0):  # the rows outside sel
+        if not keep[n]:
             out[n, 0] = out[n, 1] = out[n, 2] = 0.0
             live[n, 0] = live[n, 1] = live[n, 2] = False
     for ch in prange(CHUNKS):
@@ -54,21 +49,15 @@ def _forward(dc, rest, dirs, K, out, live, sel):
 
 
 @njit(parallel=True, cache=True)
-def _backward(dc, rest, dirs, K, live, g, g_dc, g_rest, g_dirs, sel):
+def _backward(dc, rest, dirs, K, live, g, g_dc, g_rest, g_dirs, sel, keep):
     """Gradients of sum(g * out) w.r.t. dc (g_dc [N,1,3]), rest (g_rest [N,R,3], zero past K - 1) and dirs
-    (g_dirs [N,3]); sel as in _forward (the rows outside it get zeros)."""
+    (g_dirs [N,3]); sel and keep as in _forward (the rows outside sel get zeros)."""
     N, R = dc.shape[0], rest.shape[1]
     M = sel.shape[0] if sel.shape[0] > 0 else N
-    for ch in prange(CHUNKS if sel.shape[0] > 0 else 0):  # the rows outside sel, in contiguous blocks
-        lo, hi = ch * N // CHUNKS, (ch + 1) * N // CHUNKS
-        j = np.searchsorted(sel, lo)
-        for n in range(lo, hi):
-            if j < M and sel[j] == n:
-                j += 1
-                continue
+    for n in prange(N if sel.shape[0] > 0 else 0):  # the rows outside sel
+        if not keep[n]:
             g_dc[n, 0, 0] = g_dc[n, 0, 1] = g_dc[n, 0, 2] = 0.0
-            for r in range(R):
-                g_rest[n, r, 0] = g_rest[n, r, 1] = g_rest[n, r, 2] = 0.0
+            g_rest[n, :, :] = 0.0
             g_dirs[n, 0] = g_dirs[n, 1] = g_dirs[n, 2] = 0.0
     for ch in prange(CHUNKS):
         Y = np.empty(16)
@@ -98,15 +87,15 @@ def _backward(dc, rest, dirs, K, live, g, g_dc, g_rest, g_dirs, sel):
 
 class _SHColours(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, sh_dc, sh_rest, dirs, K, sel):
+    def forward(ctx, sh_dc, sh_rest, dirs, K, sel, keep):
         with stage("sh_forward"):
             dc, rest = sh_dc.detach().numpy(), sh_rest.detach().numpy()
             d = np.ascontiguousarray(dirs.detach().to(sh_dc.dtype).numpy())
             out = np.empty((dc.shape[0], 3), dc.dtype)
             live = np.empty((dc.shape[0], 3), np.bool_)
-            _forward(dc, rest, d, K, out, live, sel)
+            _forward(dc, rest, d, K, out, live, sel, keep)
         ctx.save_for_backward(sh_dc, sh_rest, dirs)
-        ctx.K, ctx.live, ctx.sel = K, live, sel
+        ctx.K, ctx.live, ctx.sel, ctx.keep = K, live, sel, keep
         return torch.from_numpy(out)
 
     @staticmethod
@@ -117,8 +106,8 @@ class _SHColours(torch.autograd.Function):
             d = np.ascontiguousarray(dirs.detach().to(sh_dc.dtype).numpy())
             g_np = np.ascontiguousarray(g.detach().to(sh_dc.dtype).numpy())
             g_dc, g_rest, g_d = np.empty_like(dc), np.empty_like(rest), np.empty_like(d)
-            _backward(dc, rest, d, ctx.K, ctx.live, g_np, g_dc, g_rest, g_d, ctx.sel)
-        return torch.from_numpy(g_dc), torch.from_numpy(g_rest), torch.from_numpy(g_d).to(dirs.dtype), None, None
+            _backward(dc, rest, d, ctx.K, ctx.live, g_np, g_dc, g_rest, g_d, ctx.sel, ctx.keep)
+        return torch.from_numpy(g_dc), torch.from_numpy(g_rest), torch.from_numpy(g_d).to(dirs.dtype), None, None, None
 
 
 def sh_colours_torch(sh_dc: torch.Tensor, sh_rest: torch.Tensor, dirs: torch.Tensor, K: int) -> torch.Tensor:
@@ -139,16 +128,17 @@ def sh_colours(sh_dc: torch.Tensor, sh_rest: torch.Tensor, dirs: torch.Tensor, K
            for t in (sh_dc, sh_rest)) and sh_dc.dtype == sh_rest.dtype and dirs.device.type == "cpu" \
             and sh_dc.ndim == 3 and sh_dc.shape[1:] == (1, 3) and sh_rest.ndim == 3 and sh_rest.shape[2] == 3 \
             and dirs.is_floating_point():
-        sel = _EVERY if only is None else np.flatnonzero(only).astype(np.int64)
-        if only is not None and sel.shape[0] == 0:
-            sel = None  # nothing in view: every colour 0, every gradient 0
-        if sel is None:
+        if only is None:
+            return _SHColours.apply(sh_dc, sh_rest, dirs, K, _EVERY, _EVERY_KEPT)
+        keep = np.ascontiguousarray(only, dtype=np.uint8)
+        sel = np.flatnonzero(keep).astype(np.int64)
+        if sel.shape[0] == 0:  # nothing in view: every colour 0, every gradient 0
             return _NoColours.apply(sh_dc, sh_rest, dirs)
-        return _SHColours.apply(sh_dc, sh_rest, dirs, K, sel)
+        return _SHColours.apply(sh_dc, sh_rest, dirs, K, sel, keep)
     return sh_colours_torch(sh_dc, sh_rest, dirs, K)
 
 
-_EVERY = np.empty(0, np.int64)  # the kernels' "every row"
+_EVERY, _EVERY_KEPT = np.empty(0, np.int64), np.empty(0, np.uint8)  # the kernels' "every row"
 
 
 class _NoColours(torch.autograd.Function):
