@@ -57,7 +57,8 @@ def _backward(dc, rest, dirs, K, live, g, g_dc, g_rest, g_dirs, sel, keep):
     for n in prange(N if sel.shape[0] > 0 else 0):  # the rows outside sel
         if not keep[n]:
             g_dc[n, 0, 0] = g_dc[n, 0, 1] = g_dc[n, 0, 2] = 0.0
-            g_rest[n, :, :] = 0.0
+            for r in range(R):  # (a slice assignment here would be a parallel loop of its own, launched per row)
+                g_rest[n, r, 0] = g_rest[n, r, 1] = g_rest[n, r, 2] = 0.0
             g_dirs[n, 0] = g_dirs[n, 1] = g_dirs[n, 2] = 0.0
     for ch in prange(CHUNKS):
         Y = np.empty(16)
